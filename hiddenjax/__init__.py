@@ -1,0 +1,17 @@
+"""hiddenjax: find and use hidden cues (shadows, subtle changes) in ordinary photographs.
+
+Everything public is re-exported here; implementation modules are private.
+"""
+
+from . import io as io
+from . import scene as scenes
+from .scene import Camera as Camera
+from .scene import EnvGrid as EnvGrid
+from .scene import Scene as Scene
+from .scene import Surface as Surface
+from .transport import TransportMatrix as TransportMatrix
+from .transport import reference_render as reference_render
+from .transport import render as render
+from .transport import transport_matrix as transport_matrix
+
+__version__ = "0.1.0"

@@ -1,0 +1,152 @@
+"""Diffuse surfaces and scenes (DESIGN.md section 2, "Surfaces")."""
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+
+def load_mesh(mesh_or_path) -> trimesh.Trimesh:
+    """A `trimesh.Trimesh` from a mesh or a file path (OBJ, PLY, STL, GLB, ...), scenes flattened."""
+    if isinstance(mesh_or_path, (str, Path)):
+        path = Path(mesh_or_path)
+        if not path.is_file():
+            raise ValueError(f"mesh file not found: {path}")
+        mesh = trimesh.load(path, force="mesh", process=False)
+    else:
+        mesh = mesh_or_path
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"expected a trimesh.Trimesh or a mesh file path, got {type(mesh).__name__}")
+    if len(mesh.faces) == 0:
+        raise ValueError("mesh has no faces; an empty mesh can neither receive nor cast shadows")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise ValueError("mesh vertices contain non-finite values")
+    return mesh
+
+
+class Surface:
+    """A diffuse surface (BRDF `albedo/pi`) with albedo in `[0, 1]`.
+
+    **Arguments:**
+    - `mesh`: a `trimesh.Trimesh` or a path to a mesh file.
+    - `albedo`: a constant, per-face values `(F,)`, or a grey texture `(h, w)` addressed by the
+      mesh's per-vertex UVs (`mesh.visual.uv`, `v` up).
+    - `observe`: whether camera pixels that see this surface belong to the default mask of a
+      transport matrix. `False` (the occluder itself) still casts shadows.
+    """
+
+    def __init__(self, mesh, albedo=0.8, observe: bool = True):
+        self.mesh = load_mesh(mesh)
+        self.observe = bool(observe)
+        albedo = np.asarray(albedo, dtype=np.float64)
+        if not np.all(np.isfinite(albedo)) or albedo.size == 0:
+            raise ValueError("albedo must be finite and non-empty")
+        if np.any(albedo < 0) or np.any(albedo > 1):
+            raise ValueError(
+                f"albedo must lie in [0, 1], got range [{albedo.min():.3g}, {albedo.max():.3g}]"
+            )
+        faces = len(self.mesh.faces)
+        if albedo.ndim == 1 and albedo.shape[0] != faces:
+            raise ValueError(f"per-face albedo has {albedo.shape[0]} values for {faces} faces")
+        if albedo.ndim == 2:
+            uv = getattr(self.mesh.visual, "uv", None)
+            if uv is None or len(uv) != len(self.mesh.vertices):
+                raise ValueError("a texture albedo needs per-vertex UVs in mesh.visual.uv")
+        if albedo.ndim > 2:
+            raise ValueError(
+                f"albedo must be a scalar, per-face (F,) or a grey texture (h, w); got {albedo.shape}"
+                " (convert an RGB texture to grey first)"
+            )
+        self.albedo = albedo
+        self.triangles = np.asarray(self.mesh.triangles, dtype=np.float64)  # (F, 3, 3)
+        self.normals = _face_normals(self.triangles)
+        self.corner_uv = (
+            np.asarray(self.mesh.visual.uv, dtype=np.float64)[self.mesh.faces] if albedo.ndim == 2 else None
+        )
+
+    @property
+    def planar(self) -> bool:
+        """True when every face lies in one plane: such a surface cannot shadow itself."""
+        n0 = self.normals[0]
+        p = self.triangles.reshape(-1, 3)
+        size = max(float(np.ptp(p, axis=0).max()), 1e-12)
+        return bool(
+            np.all(np.abs(self.normals @ n0) > 1 - 1e-6) and np.all(np.abs((p - p[0]) @ n0) < 1e-6 * size)
+        )
+
+    def bounding_sphere(self):
+        """`(centre (3,), radius)` of a sphere enclosing the surface (box centre, half diagonal)."""
+        lo, hi = self.triangles.reshape(-1, 3).min(0), self.triangles.reshape(-1, 3).max(0)
+        return (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
+
+    def albedo_at(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Albedo at hit points given face indices `(n,)` and Embree barycentrics `bary (n, 2)`."""
+        if self.albedo.ndim == 0:
+            return np.full(faces.shape, float(self.albedo))
+        if self.albedo.ndim == 1:
+            return self.albedo[faces]
+        w = np.stack([1 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]], -1)
+        uv = np.einsum("nk,nkc->nc", w, self.corner_uv[faces])
+        return _bilinear(self.albedo, uv)
+
+    def __repr__(self):
+        kind = {0: f"{float(self.albedo):.3g}", 1: "per-face", 2: f"texture {self.albedo.shape}"}
+        return f"Surface({len(self.triangles)} faces, albedo={kind[self.albedo.ndim]}, observe={self.observe})"
+
+
+class Scene:
+    """An ordered collection of `Surface`s; surface `k` is Embree geometry `k`."""
+
+    def __init__(self, surfaces: Sequence[Surface]):
+        surfaces = tuple(surfaces)
+        if not surfaces:
+            raise ValueError("a Scene needs at least one Surface")
+        for s in surfaces:
+            if not isinstance(s, Surface):
+                raise ValueError(f"Scene takes Surface objects, got {type(s).__name__}")
+        self.surfaces = surfaces
+
+    def __iter__(self):
+        return iter(self.surfaces)
+
+    def __len__(self):
+        return len(self.surfaces)
+
+    def __getitem__(self, k):
+        return self.surfaces[k]
+
+    def bounds(self) -> np.ndarray:
+        """`(2, 3)` axis-aligned bounds of all surfaces."""
+        pts = np.concatenate([s.triangles.reshape(-1, 3) for s in self.surfaces])
+        return np.stack([pts.min(0), pts.max(0)])
+
+    def scale(self) -> float:
+        """Length of the bounding-box diagonal (sets ray offsets)."""
+        lo, hi = self.bounds()
+        return float(np.linalg.norm(hi - lo))
+
+    def __repr__(self):
+        return "Scene([" + ", ".join(map(repr, self.surfaces)) + "])"
+
+
+def _face_normals(tri: np.ndarray) -> np.ndarray:
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(length > 0, length, 1.0)
+
+
+def _bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of a `(h, w)` texture at `uv (n, 2)` (u right, v up, wrapping)."""
+    h, w = texture.shape
+    x = np.mod(uv[:, 0], 1.0) * w - 0.5
+    y = np.mod(1.0 - uv[:, 1], 1.0) * h - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    at = lambda yy, xx: texture[np.mod(yy, h), np.mod(xx, w)]
+    return (
+        at(y0, x0) * (1 - fx) * (1 - fy)
+        + at(y0, x0 + 1) * fx * (1 - fy)
+        + at(y0 + 1, x0) * (1 - fx) * fy
+        + at(y0 + 1, x0 + 1) * fx * fy
+    )

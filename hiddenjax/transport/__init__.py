@@ -1,0 +1,9 @@
+"""Embree ray transport: the `TransportMatrix`, its builder, `render` and the reference renderer."""
+
+from ._build import DEFAULT_PIXEL_SAMPLES as DEFAULT_PIXEL_SAMPLES
+from ._build import DEFAULT_SAMPLES as DEFAULT_SAMPLES
+from ._build import transport_matrix as transport_matrix
+from ._embree import RayCaster as RayCaster
+from ._matrix import TransportMatrix as TransportMatrix
+from ._matrix import render as render
+from ._reference import reference_render as reference_render

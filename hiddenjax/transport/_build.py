@@ -1,0 +1,234 @@
+"""`transport_matrix`: build `A` with Embree, chunked over pixels, optionally in worker processes."""
+
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..scene import Camera, EnvGrid, Scene
+from ._direct import DirectLighting
+from ._embree import Hits, primary_hits
+from ._matrix import TransportMatrix
+
+DEFAULT_SAMPLES = 16
+DEFAULT_PIXEL_SAMPLES = 4
+DEFAULT_MAX_BYTES = 8 << 30
+# Work per chunk in (footprint point x env pixel) pairs: keeps temporaries to tens of MB.
+_CHUNK_PAIRS = 1 << 19
+
+
+def transport_matrix(
+    scene: Scene,
+    camera: Camera,
+    grid: EnvGrid,
+    samples: int = DEFAULT_SAMPLES,
+    pixel_samples: int = DEFAULT_PIXEL_SAMPLES,
+    mask=None,
+    seed: int = 0,
+    *,
+    bounces: int = 0,
+    bounce_samples: int = 1,
+    keep_occluder: bool = False,
+    workers: int | None = None,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+    progress: bool = True,
+) -> TransportMatrix:
+    """Ray transport matrix `A (P, N)` of a scene seen by a camera, lit by an env grid (eq. 5.1-5.2).
+
+    `A[p, j] = mean over footprint samples s of (albedo(s)/pi) * integral over Omega_j of
+    V(s, w) max(0, n_s . w) dw` (DESIGN.md section 2); unoccluded parts of each cell are exact,
+    occlusion is estimated with `samples` stratified directions per env pixel (see `_direct`).
+
+    **Arguments:**
+    - `samples`: directions per env pixel for the visibility estimate (default 16: about 1%
+      Monte Carlo error of a rendered image; see the README's table).
+    - `pixel_samples`: stratified footprint samples per image pixel (box filter, default 4).
+    - `mask`: optional `(H, W)` bool; intersected with the pixels whose whole footprint sees an
+      observed surface (all of a surface with `keep_occluder=True`).
+    - `seed`: integer seed for every random draw; the result does not depend on `workers`.
+    - `bounces`: 0 is direct light; `k >= 1` adds `k` diffuse interreflections along
+      `bounce_samples` cosine-weighted paths per footprint sample.
+    - `workers`: processes for the ray casting (default: all cores for large builds, else 1).
+    - `max_bytes`: fail at once if `A` would need more memory than this.
+    - `progress`: show a progress bar of pixels done and rays cast.
+
+    **Returns:** a `TransportMatrix` with float32 `A`. Peak memory is about `A` plus a few tens
+    of MB per worker.
+    """
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene must be a hiddenjax Scene, got {type(scene).__name__}")
+    for name, value, low in (("samples", samples, 1), ("pixel_samples", pixel_samples, 1),
+                             ("bounces", bounces, 0), ("bounce_samples", bounce_samples, 1)):
+        if not isinstance(value, (int, np.integer)) or value < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    if not np.all(np.isfinite(np.asarray(camera.rotation))) or not np.all(np.isfinite(np.asarray(camera.intrinsics))):
+        raise ValueError("camera parameters contain non-finite values")
+
+    lighting = DirectLighting(scene, grid, samples)
+    H, W, S = camera.height, camera.width, pixel_samples
+    hits, _ = primary_hits(lighting.caster, camera, S, seed)
+    pixels = _observed_pixels(scene, hits, (H, W), S, mask, keep_occluder)
+    P, N = len(pixels), grid.size
+    need = P * N * 4
+    if need > max_bytes:
+        raise ValueError(
+            f"A would need {need / 2**30:.2f} GiB ({P} pixels x {N} env pixels, float32), over max_bytes="
+            f"{max_bytes / 2**30:.2f} GiB; use a smaller grid, fewer pixels (mask), or raise max_bytes"
+        )
+
+    sel = (pixels[:, None] * S + np.arange(S)).reshape(-1)
+    points = _Points(hits, sel, lighting.caster.offset)
+    chunk = max(1, _CHUNK_PAIRS // (S * N * (1 + bounces * bounce_samples)))
+    starts = list(range(0, P, chunk))
+    A = np.empty((P, N), dtype=np.float32)
+    if workers is None:
+        workers = os.cpu_count() if P * N * samples > 5e7 else 1
+    bar = tqdm(total=P, unit="px", desc="transport matrix", disable=not progress, smoothing=0.1)
+    rays = 0
+    tasks = ((i, points.take(slice(s * S, (s + chunk) * S))) for i, s in enumerate(starts))
+    config = (scene, grid, samples, S, bounces, bounce_samples, seed)
+    if workers <= 1 or len(starts) == 1:
+        _init_worker(*config, lighting=lighting)
+        results = map(_work, tasks)
+        pool = None
+    else:
+        ctx = multiprocessing.get_context("spawn")
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=config)
+        results = pool.map(_work, tasks)
+    try:
+        for i, rows, n_rays in results:
+            A[starts[i] : starts[i] + len(rows)] = rows
+            rays += n_rays
+            bar.update(len(rows))
+            bar.set_postfix_str(f"{rays / 1e6:.1f} M rays", refresh=False)
+    finally:
+        bar.close()
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+        _WORKER.clear()
+    albedo = points.albedo.reshape(P, S).mean(axis=1)
+    return TransportMatrix(
+        A=jnp.asarray(A),
+        albedo=jnp.asarray(albedo, dtype=jnp.float32),
+        pixels=jnp.asarray(pixels, dtype=jnp.int32),
+        grid=grid,
+        image_shape=(H, W),
+        samples=int(samples),
+        pixel_samples=int(S),
+        bounces=int(bounces),
+        seed=int(seed),
+    )
+
+
+def _observed_pixels(scene, hits: Hits, shape, S, mask, keep_occluder) -> np.ndarray:
+    """Flat indices of pixels whose whole footprint sees an observed surface (and positive albedo)."""
+    H, W = shape
+    surface = hits.surface.reshape(H * W, S)
+    observe = np.array([s.observe or keep_occluder for s in scene] + [False])  # index -1: a miss
+    ok = np.all(observe[surface], axis=1) & np.all(hits.albedo.reshape(H * W, S) > 0, axis=1)
+    if not np.any(np.all(surface >= 0, axis=1)):
+        raise ValueError("the camera sees no surface: every pixel's rays miss the scene; check its pose")
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != (H, W) or mask.dtype != bool:
+            raise ValueError(f"mask must be a bool array of the image shape {(H, W)}, got {mask.dtype} {mask.shape}")
+        ok &= mask.reshape(-1)
+    if not np.any(ok):
+        raise ValueError(
+            "no pixel qualifies for the transport matrix: none sees only observed surfaces with positive "
+            "albedo inside the mask; widen the mask, or pass keep_occluder=True to keep occluder pixels"
+        )
+    return np.nonzero(ok)[0]
+
+
+class _Points:
+    """Footprint points as flat arrays: position (offset off the surface), normal, surface, albedo."""
+
+    def __init__(self, hits: Hits, sel, offset: float):
+        self.normal = hits.normal[sel]
+        self.position = hits.position[sel] + offset * self.normal
+        self.surface = hits.surface[sel]
+        self.albedo = hits.albedo[sel]
+
+    def take(self, s):
+        out = object.__new__(_Points)
+        for name in ("normal", "position", "surface", "albedo"):
+            setattr(out, name, getattr(self, name)[s])
+        return out
+
+
+# One DirectLighting per process, built by the pool initializer (an Embree scene cannot be pickled).
+_WORKER: dict = {}
+
+
+def _init_worker(scene, grid, samples, pixel_samples, bounces, bounce_samples, seed, lighting=None):
+    _WORKER.update(
+        lighting=lighting or DirectLighting(scene, grid, samples),
+        pixel_samples=pixel_samples,
+        bounces=bounces,
+        bounce_samples=bounce_samples,
+        seed=seed,
+    )
+
+
+def _work(task):
+    """Rows of `A` for one chunk of pixels: mean over footprint samples of direct + bounced light."""
+    index, pts = task
+    w = _WORKER
+    lighting: DirectLighting = w["lighting"]
+    rng = np.random.default_rng([w["seed"], 1, index])
+    E, rays = lighting.rows(pts.position, pts.normal, pts.surface, rng)
+    radiance = (pts.albedo / np.pi)[:, None] * E
+    if w["bounces"]:
+        indirect, more = _indirect(lighting, pts, w["bounces"], w["bounce_samples"], rng)
+        radiance += indirect
+        rays += more
+    S = w["pixel_samples"]
+    rows = radiance.reshape(-1, S, radiance.shape[1]).mean(axis=1)
+    return index, rows.astype(np.float32), rays
+
+
+def _indirect(lighting: DirectLighting, pts: "_Points", bounces: int, paths: int, rng):
+    """Diffuse interreflection: cosine-weighted paths; each vertex `y` adds `throughput * rho_y/pi * E(y)`.
+
+    With pdf `cos/pi`, a bounce towards `y` contributes `rho_x L(y)`, so the path throughput is
+    the product of the albedos met so far, divided by the number of paths.
+    """
+    caster = lighting.caster
+    M = len(pts.position)
+    owner = np.repeat(np.arange(M), paths)
+    pos, nrm = pts.position[owner], pts.normal[owner]
+    throughput = pts.albedo[owner] / paths
+    out = np.zeros((M, lighting.grid.size))
+    rays = 0
+    for _ in range(bounces):
+        w = _cosine_directions(nrm, rng)
+        hits = caster.intersect(pos, w)
+        rays += len(pos)
+        alive = hits.surface >= 0
+        if not np.any(alive):
+            break
+        owner, throughput, w = owner[alive], throughput[alive], w[alive]
+        nrm = hits.normal[alive]
+        pos = hits.position[alive] + caster.offset * nrm
+        E, n_rays = lighting.rows(pos, nrm, hits.surface[alive], rng)
+        rays += n_rays
+        albedo = hits.albedo[alive]
+        np.add.at(out, owner, (throughput * albedo / np.pi)[:, None] * E)
+        throughput = throughput * albedo
+    return out, rays
+
+
+def _cosine_directions(normals: np.ndarray, rng) -> np.ndarray:
+    """One cosine-distributed direction about each unit normal `(n, 3)` (Malley's method)."""
+    u = rng.random((len(normals), 2))
+    r, phi = np.sqrt(u[:, 0]), 2 * np.pi * u[:, 1]
+    local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - u[:, 0]))], -1)
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    t = np.cross(normals, helper)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    b = np.cross(normals, t)
+    return local[:, :1] * t + local[:, 1:2] * b + local[:, 2:] * normals

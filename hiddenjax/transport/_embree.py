@@ -1,0 +1,75 @@
+"""Embree ray casting over a `Scene` (numpy in, numpy out; never traced by JAX)."""
+
+from typing import NamedTuple
+
+import numpy as np
+from embreex import rtcore_scene
+from embreex.mesh_construction import TriangleMesh
+
+from ..scene import Camera, Scene
+
+
+class Hits(NamedTuple):
+    """Closest hits of a batch of rays; `surface == -1` where a ray hit nothing."""
+
+    surface: np.ndarray  # (n,) int, index into the scene
+    face: np.ndarray  # (n,) int, face within that surface
+    bary: np.ndarray  # (n, 2) Embree barycentrics (u, v)
+    position: np.ndarray  # (n, 3) float64
+    normal: np.ndarray  # (n, 3) unit geometric normal facing the incoming ray
+    albedo: np.ndarray  # (n,) albedo at the hit (0 where missed)
+
+
+class RayCaster:
+    """An Embree scene with one triangle geometry per surface (geometry id == surface index).
+
+    Ray origins are offset by `offset` along the facing normal by the callers, using
+    `self.offset` (a small fraction of the scene size), to avoid self-intersection.
+    """
+
+    def __init__(self, scene: Scene):
+        self.scene = scene
+        self._embree = rtcore_scene.EmbreeScene()
+        for surface in scene:
+            TriangleMesh(self._embree, surface.triangles.astype(np.float32))
+        self.offset = 2e-5 * scene.scale()
+
+    def occluded(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Boolean `(n,)`: does the ray `origins + t directions, t > 0` hit anything?"""
+        if len(origins) == 0:
+            return np.zeros(0, dtype=bool)
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        return self._embree.run(o, d, query="OCCLUDED") != -1
+
+    def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
+        """Closest hit of each ray, with the albedo and a normal facing back along the ray."""
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        n = len(o)
+        out = self._embree.run(o, d, output=1)
+        surface = out["geomID"].astype(np.int64)
+        face = out["primID"].astype(np.int64)
+        bary = np.stack([out["u"], out["v"]], -1).astype(np.float64)
+        hit = surface >= 0
+        position = np.zeros((n, 3))
+        normal = np.zeros((n, 3))
+        albedo = np.zeros(n)
+        position[hit] = origins[hit] + out["tfar"][hit, None].astype(np.float64) * directions[hit]
+        for k, s in enumerate(self.scene):
+            sel = surface == k
+            if not np.any(sel):
+                continue
+            nk = s.normals[face[sel]]
+            flip = np.sum(nk * directions[sel], axis=-1) > 0
+            normal[sel] = np.where(flip[:, None], -nk, nk)
+            albedo[sel] = s.albedo_at(face[sel], bary[sel])
+        return Hits(surface, face, bary, position, normal, albedo)
+
+
+def primary_hits(caster: RayCaster, camera: Camera, pixel_samples: int, seed: int):
+    """`(hits, directions)` of `pixel_samples` stratified rays per pixel, `(H*W*S,)` in row-major order."""
+    pixels = camera.footprint_samples(pixel_samples, seed).reshape(-1, 2)
+    directions = np.asarray(camera.ray_directions(pixels), dtype=np.float64)
+    origins = np.broadcast_to(np.asarray(camera.origin, dtype=np.float64), directions.shape)
+    return caster.intersect(origins, directions), directions

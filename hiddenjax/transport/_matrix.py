@@ -1,0 +1,127 @@
+"""The `TransportMatrix` pytree, `render` (eq. 5.2) and `.npz` persistence."""
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from .._files import atomic_path
+from ..scene import EnvGrid
+
+
+class TransportMatrix(eqx.Module):
+    """Direct-lighting ray transport `A (P, N)` of the observed pixels (DESIGN.md section 2).
+
+    `A[p, j]` is the radiance of observed pixel `p` when env pixel `j` has unit radiance and all
+    others are dark, so `A @ x` is the image in the radiance units of `x`. `A = diag(albedo) A'`
+    with `albedo (P,)` the mean footprint albedo of each pixel (eq. 5.2).
+
+    **Fields:** `A (P, N)` float32; `albedo (P,)`; `pixels (P,)` row-major flat indices of the
+    observed pixels in the `image_shape` image; `grid` the env grid; `image_shape (H, W)`;
+    `samples`, `pixel_samples`, `bounces`, `seed` how it was built.
+    """
+
+    A: Float[Array, "P N"]
+    albedo: Float[Array, " P"]
+    pixels: Int[Array, " P"]
+    grid: EnvGrid
+    image_shape: tuple[int, int] = eqx.field(static=True)
+    samples: int = eqx.field(static=True, default=0)
+    pixel_samples: int = eqx.field(static=True, default=0)
+    bounces: int = eqx.field(static=True, default=0)
+    seed: int = eqx.field(static=True, default=0)
+
+    @property
+    def mask(self) -> np.ndarray:
+        """Boolean `(H, W)` image of the observed pixels (the rows of `A`)."""
+        m = np.zeros(self.image_shape[0] * self.image_shape[1], dtype=bool)
+        m[np.asarray(self.pixels)] = True
+        return m.reshape(self.image_shape)
+
+    @property
+    def unit_albedo(self) -> Float[Array, "P N"]:
+        """`A' = diag(albedo)^-1 A`, the transport of a white (albedo 1) surface (eq. 5.2)."""
+        return self.A / self.albedo[:, None]
+
+    def image_to_rows(self, image):
+        """Observed pixels `(P,)` or `(P, C)` of an image `(H, W)` or `(H, W, C)`."""
+        image = jnp.asarray(image)
+        if image.shape[:2] != self.image_shape:
+            raise ValueError(
+                f"image shape {image.shape} does not match the transport matrix's image {self.image_shape}"
+            )
+        return image.reshape((-1,) + image.shape[2:])[self.pixels]
+
+    def rows_to_image(self, rows):
+        """Scatter `(P,)` or `(P, C)` values into an `(H, W[, C])` image, zero outside the mask."""
+        rows = jnp.asarray(rows)
+        H, W = self.image_shape
+        out = jnp.zeros((H * W,) + rows.shape[1:], dtype=rows.dtype).at[self.pixels].set(rows)
+        return out.reshape((H, W) + rows.shape[1:])
+
+    def save(self, path) -> None:
+        """Write to `.npz` (atomically: temporary file, then rename)."""
+        meta = dict(
+            image_shape=list(self.image_shape),
+            grid=[self.grid.height, self.grid.width],
+            samples=self.samples,
+            pixel_samples=self.pixel_samples,
+            bounces=self.bounces,
+            seed=self.seed,
+            format="hiddenjax.TransportMatrix/1",
+        )
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(
+                f,
+                A=np.asarray(self.A),
+                albedo=np.asarray(self.albedo),
+                pixels=np.asarray(self.pixels),
+                meta=np.array(json.dumps(meta)),
+            )
+
+    @classmethod
+    def load(cls, path) -> "TransportMatrix":
+        """Read a matrix written by `save`."""
+        try:
+            with np.load(path) as data:
+                meta = json.loads(str(data["meta"]))
+                A, albedo, pixels = data["A"], data["albedo"], data["pixels"]
+        except (OSError, KeyError, ValueError) as e:
+            raise ValueError(f"{path} is not a hiddenjax transport matrix (.npz from TransportMatrix.save): {e}")
+        return cls(
+            A=jnp.asarray(A, dtype=jnp.float32),
+            albedo=jnp.asarray(albedo, dtype=jnp.float32),
+            pixels=jnp.asarray(pixels, dtype=jnp.int32),
+            grid=EnvGrid(*meta["grid"]),
+            image_shape=tuple(meta["image_shape"]),
+            samples=meta["samples"],
+            pixel_samples=meta["pixel_samples"],
+            bounces=meta["bounces"],
+            seed=meta["seed"],
+        )
+
+
+def check_envmap(grid: EnvGrid, envmap):
+    """`envmap (H, W)` or `(H, W, C)` on `grid` -> `(N,)` or `(N, C)`; clear errors on bad input."""
+    envmap = jnp.asarray(envmap)
+    if envmap.ndim not in (2, 3) or envmap.shape[:2] != grid.shape:
+        raise ValueError(
+            f"envmap shape {envmap.shape} does not match the grid {grid.shape}; pass (H, W) or (H, W, 3) "
+            "on the grid (use grid.downsample for a full-resolution panorama)"
+        )
+    if not isinstance(envmap, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(envmap))):
+        raise ValueError("envmap contains non-finite values (NaN or inf)")
+    return envmap.reshape((grid.size,) + envmap.shape[2:])
+
+
+def render(T: TransportMatrix, envmap) -> jax.Array:
+    """The image `A x` of an env map (eq. 5.2), `(H, W)` or `(H, W, C)`, zero outside the mask.
+
+    **Arguments:** `T` a `TransportMatrix`; `envmap (h, w)` or `(h, w, C)` linear radiance on
+    `T.grid`. Pure JAX: jit, vmap and differentiate freely.
+    """
+    x = check_envmap(T.grid, envmap)
+    return T.rows_to_image(T.A @ x.astype(T.A.dtype))

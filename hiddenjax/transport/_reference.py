@@ -1,0 +1,77 @@
+"""An independent reference renderer: direct light from a full-resolution panorama, not through `A`.
+
+Used to make observed images for inverse problems and to test `A`. Per footprint sample it draws
+light directions from the panorama itself (probability proportional to luminance times solid
+angle, uniform inside the chosen panorama pixel) and weights `albedo/pi L cos V / pdf`.
+"""
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..scene import Camera, EnvGrid, Scene
+from ._embree import RayCaster, primary_hits
+
+
+def reference_render(
+    scene: Scene,
+    camera: Camera,
+    panorama,
+    samples: int = 256,
+    pixel_samples: int = 4,
+    seed: int = 0,
+    *,
+    progress: bool = False,
+) -> np.ndarray:
+    """Direct-lighting image of `scene` under a lat-long `panorama (Hf, Wf[, C])` (eq. 5.1).
+
+    **Arguments:** `samples` light directions per footprint sample, `pixel_samples` stratified
+    footprint samples per pixel (box filter), `seed` for all draws.
+
+    **Returns:** `(H, W)` or `(H, W, C)` float32 linear radiance. Rays that miss every surface
+    see the panorama itself, as a photograph would.
+    """
+    pano = np.asarray(panorama, dtype=np.float64)
+    if pano.ndim not in (2, 3):
+        raise ValueError(f"panorama must be (Hf, Wf) or (Hf, Wf, C), got shape {pano.shape}")
+    if not np.all(np.isfinite(pano)) or np.any(pano < 0):
+        raise ValueError("panorama must be finite and non-negative radiance")
+    if samples < 1 or pixel_samples < 1:
+        raise ValueError(f"samples and pixel_samples must be >= 1, got {samples}, {pixel_samples}")
+    grey = pano.ndim == 2
+    pano = pano[..., None] if grey else pano
+    C = pano.shape[-1]
+    fine = EnvGrid(pano.shape[0], pano.shape[1])
+    radiance = pano.reshape(-1, C)
+    omega = fine.solid_angles().reshape(-1)
+    weight = radiance.mean(axis=1) * omega
+    total = weight.sum()
+
+    caster = RayCaster(scene)
+    hits, directions = primary_hits(caster, camera, pixel_samples, seed)
+    n = len(hits.surface)
+    out = np.zeros((n, C))
+    missed = hits.surface < 0
+    if np.any(missed):
+        i, j = fine.direction_to_pixel(directions[missed])
+        out[missed] = pano[i, j]
+    hit_idx = np.nonzero(~missed)[0]
+    if total > 0 and len(hit_idx):
+        cdf = np.cumsum(weight) / total
+        rng = np.random.default_rng([seed, 2])
+        chunk = max(1, (1 << 20) // samples)
+        for start in tqdm(range(0, len(hit_idx), chunk), disable=not progress, desc="reference render"):
+            idx = hit_idx[start : start + chunk]
+            k = np.minimum(np.searchsorted(cdf, rng.random((len(idx), samples)), side="right"), len(cdf) - 1)
+            w = fine.sample_directions(k, rng.random((len(idx), samples, 2)))
+            cos = np.einsum("mc,msc->ms", hits.normal[idx], w)
+            lit = cos > 0
+            mm, ss = np.nonzero(lit)
+            origins = hits.position[idx[mm]] + caster.offset * hits.normal[idx[mm]]
+            visible = np.zeros(lit.shape, dtype=bool)
+            visible[mm, ss] = ~caster.occluded(origins, w[mm, ss])
+            pdf = weight[k] / total / omega[k]
+            f = np.where(visible, cos / np.maximum(pdf, 1e-300), 0.0)
+            out[idx] = (hits.albedo[idx] / np.pi)[:, None] * np.einsum("ms,msc->mc", f, radiance[k]) / samples
+    image = out.reshape(camera.height, camera.width, pixel_samples, C).mean(axis=2).astype(np.float32)
+    return image[..., 0] if grey else image
+
