@@ -1,1 +1,11 @@
+"""Image I/O: OpenEXR, Radiance HDR, PNG (tone mapped), contact sheets. Writes are atomic."""
 
+from ._exr import read_exr as read_exr
+from ._exr import write_exr as write_exr
+from ._images import colormap as colormap
+from ._images import read_hdr as read_hdr
+from ._images import tonemap as tonemap
+from ._images import write_hdr as write_hdr
+from ._images import write_png as write_png
+from ._sheet import contact_sheet as contact_sheet
+from ._sheet import panel as panel

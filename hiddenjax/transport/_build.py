@@ -1,8 +1,4 @@
-"""`transport_matrix`: build `A` with Embree, chunked over pixels, optionally in worker processes."""
-
-import multiprocessing
-import os
-from concurrent.futures import ProcessPoolExecutor
+"""`transport_matrix`: build `A` with Embree, chunked over pixels with bounded temporaries."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -32,7 +28,6 @@ def transport_matrix(
     bounces: int = 0,
     bounce_samples: int = 1,
     keep_occluder: bool = False,
-    workers: int | None = None,
     max_bytes: int = DEFAULT_MAX_BYTES,
     progress: bool = True,
 ) -> TransportMatrix:
@@ -48,15 +43,15 @@ def transport_matrix(
     - `pixel_samples`: stratified footprint samples per image pixel (box filter, default 4).
     - `mask`: optional `(H, W)` bool; intersected with the pixels whose whole footprint sees an
       observed surface (all of a surface with `keep_occluder=True`).
-    - `seed`: integer seed for every random draw; the result does not depend on `workers`.
+    - `seed`: integer seed for every random draw (each chunk of pixels draws from its own
+      stream, so the result does not depend on the chunk order).
     - `bounces`: 0 is direct light; `k >= 1` adds `k` diffuse interreflections along
       `bounce_samples` cosine-weighted paths per footprint sample.
-    - `workers`: processes for the ray casting (default: all cores for large builds, else 1).
     - `max_bytes`: fail at once if `A` would need more memory than this.
     - `progress`: show a progress bar of pixels done and rays cast.
 
     **Returns:** a `TransportMatrix` with float32 `A`. Peak memory is about `A` plus a few tens
-    of MB per worker.
+    of MB of per-chunk temporaries. Runs in one process: embreex holds the GIL while it casts.
     """
     if not isinstance(scene, Scene):
         raise ValueError(f"scene must be a hiddenjax Scene, got {type(scene).__name__}")
@@ -84,31 +79,15 @@ def transport_matrix(
     chunk = max(1, _CHUNK_PAIRS // (S * N * (1 + bounces * bounce_samples)))
     starts = list(range(0, P, chunk))
     A = np.empty((P, N), dtype=np.float32)
-    if workers is None:
-        workers = os.cpu_count() if P * N * samples > 5e7 else 1
-    bar = tqdm(total=P, unit="px", desc="transport matrix", disable=not progress, smoothing=0.1)
     rays = 0
-    tasks = ((i, points.take(slice(s * S, (s + chunk) * S))) for i, s in enumerate(starts))
-    config = (scene, grid, samples, S, bounces, bounce_samples, seed)
-    if workers <= 1 or len(starts) == 1:
-        _init_worker(*config, lighting=lighting)
-        results = map(_work, tasks)
-        pool = None
-    else:
-        ctx = multiprocessing.get_context("spawn")
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=config)
-        results = pool.map(_work, tasks)
-    try:
-        for i, rows, n_rays in results:
-            A[starts[i] : starts[i] + len(rows)] = rows
+    with tqdm(total=P, unit="px", desc="transport matrix", disable=not progress, smoothing=0.1) as bar:
+        for i, start in enumerate(starts):
+            chunk_points = points.take(slice(start * S, (start + chunk) * S))
+            rows, n_rays = _chunk_rows(lighting, chunk_points, S, bounces, bounce_samples, [seed, 1, i])
+            A[start : start + len(rows)] = rows
             rays += n_rays
             bar.update(len(rows))
             bar.set_postfix_str(f"{rays / 1e6:.1f} M rays", refresh=False)
-    finally:
-        bar.close()
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
-        _WORKER.clear()
     albedo = points.albedo.reshape(P, S).mean(axis=1)
     return TransportMatrix(
         A=jnp.asarray(A),
@@ -160,35 +139,17 @@ class _Points:
         return out
 
 
-# One DirectLighting per process, built by the pool initializer (an Embree scene cannot be pickled).
-_WORKER: dict = {}
-
-
-def _init_worker(scene, grid, samples, pixel_samples, bounces, bounce_samples, seed, lighting=None):
-    _WORKER.update(
-        lighting=lighting or DirectLighting(scene, grid, samples),
-        pixel_samples=pixel_samples,
-        bounces=bounces,
-        bounce_samples=bounce_samples,
-        seed=seed,
-    )
-
-
-def _work(task):
+def _chunk_rows(lighting: DirectLighting, pts: _Points, S: int, bounces: int, paths: int, seed):
     """Rows of `A` for one chunk of pixels: mean over footprint samples of direct + bounced light."""
-    index, pts = task
-    w = _WORKER
-    lighting: DirectLighting = w["lighting"]
-    rng = np.random.default_rng([w["seed"], 1, index])
+    rng = np.random.default_rng(seed)
     E, rays = lighting.rows(pts.position, pts.normal, pts.surface, rng)
     radiance = (pts.albedo / np.pi)[:, None] * E
-    if w["bounces"]:
-        indirect, more = _indirect(lighting, pts, w["bounces"], w["bounce_samples"], rng)
+    if bounces:
+        indirect, more = _indirect(lighting, pts, bounces, paths, rng)
         radiance += indirect
         rays += more
-    S = w["pixel_samples"]
     rows = radiance.reshape(-1, S, radiance.shape[1]).mean(axis=1)
-    return index, rows.astype(np.float32), rays
+    return rows.astype(np.float32), rays
 
 
 def _indirect(lighting: DirectLighting, pts: "_Points", bounces: int, paths: int, rng):

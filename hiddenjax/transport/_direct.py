@@ -35,7 +35,10 @@ class DirectLighting:
         self.centres = grid.directions().reshape(-1, 3)
         self.moments = grid.direction_moments().reshape(-1, 3)
         self.omega = grid.solid_angles().reshape(-1)
-        self.beta = grid.angular_radius().reshape(-1) + 1e-9
+        beta = grid.angular_radius().reshape(-1) + 1e-6
+        self.beta_rad = beta
+        self.cos_beta, self.sin_beta = np.cos(beta)[None, :], np.sin(beta)[None, :]
+        self.centres32 = self.centres.astype(np.float32)
         self.spheres = [s.bounding_sphere() for s in scene]
         self.planar = np.array([s.planar for s in scene])
 
@@ -46,10 +49,14 @@ class DirectLighting:
         the number of Embree occlusion queries issued.
         """
         M, N, S = len(x), self.grid.size, self.samples
-        lo, hi = self.grid.cosine_range(n)
-        above = lo >= 0
-        straddle = ~above & (hi > 0)
-        E = np.where(above, n @ self.moments.T, 0.0)
+        # Horizon classes and the closed-form term depend on the normal only: planar receivers
+        # share a handful of normals, so evaluate them once per distinct normal.
+        normals, which = np.unique(n, axis=0, return_inverse=True)
+        which = which.reshape(-1)
+        lo, hi = self.grid.cosine_range(normals)
+        above = (lo >= 0)[which]
+        straddle = (~(lo >= 0) & (hi > 0))[which]
+        E = np.where(above, (normals @ self.moments.T)[which], 0.0)
 
         cones = []  # (active (M,), axis (M,3), cos_alpha (M,)) per occluder
         candidate = np.zeros((M, N), dtype=bool)
@@ -60,10 +67,14 @@ class DirectLighting:
             v = centre - x
             dist = np.linalg.norm(v, axis=1)
             axis = v / np.maximum(dist, 1e-300)[:, None]
-            alpha = np.where(dist > radius, np.arcsin(np.clip(radius / np.maximum(dist, 1e-300), 0, 1)), np.pi)
-            reach = np.cos(np.minimum(alpha[:, None] + self.beta[None, :], np.pi))
-            candidate |= active[:, None] & (axis @ self.centres.T >= reach - 1e-12)
-            cones.append((active, axis, np.cos(alpha)))
+            sin_a = np.where(dist > radius, radius / np.maximum(dist, 1e-300), 1.0)
+            cos_a = np.where(dist > radius, np.sqrt(1 - sin_a**2), -1.0)
+            # angle(axis, centre_j) <= alpha + beta_j, with cos(alpha + beta) by angle addition
+            reach = (cos_a[:, None] * self.cos_beta - sin_a[:, None] * self.sin_beta).astype(np.float32)
+            reach = np.where(self.beta_rad[None, :] + np.arcsin(sin_a)[:, None] >= np.pi, -1.0, reach)
+            cos_centre = (axis.astype(np.float32) @ self.centres32.T)
+            candidate |= active[:, None] & (cos_centre >= reach - 1e-6)
+            cones.append((active, axis, cos_a))
 
         m_idx, j_idx = np.nonzero(straddle | (above & candidate))
         rays = 0

@@ -1,0 +1,80 @@
+"""Radiance .hdr and 8-bit PNG images, tone mapping and colour maps."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .._files import atomic_path
+from ._exr import _check_image
+
+
+def read_hdr(path) -> np.ndarray:
+    """Read a Radiance `.hdr` as float32 `(H, W, 3)` RGB linear radiance."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"HDR file not found: {path}")
+    bgr = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError(f"cannot read {path} as a Radiance .hdr image")
+    return np.ascontiguousarray(bgr[..., ::-1]).astype(np.float32)
+
+
+def write_hdr(path, array) -> None:
+    """Write `(H, W)` or `(H, W, 3)` non-negative radiance as Radiance `.hdr` (RGBE)."""
+    a = _check_image(array)
+    if np.any(a < 0):
+        raise ValueError("Radiance .hdr stores non-negative values only; clip or use EXR for signed maps")
+    bgr = np.repeat(a[..., None], 3, -1) if a.ndim == 2 else a[..., ::-1]
+    _imwrite(path, np.ascontiguousarray(bgr))
+
+
+def tonemap(array, exposure: float = 1.0, gamma: float = 2.2, white: float | None = None) -> np.ndarray:
+    """Linear radiance -> 8-bit: `clip((exposure * v / white) ** (1/gamma), 0, 1) * 255`.
+
+    `white` defaults to the 99th percentile of the image (so a sun is clipped, as the thesis
+    displays its maps); pass a number to share one scale between images.
+    """
+    a = np.asarray(array, dtype=np.float64)
+    if white is None:
+        positive = a[a > 0]
+        white = float(np.percentile(positive, 99)) if positive.size else 1.0
+    v = np.clip(exposure * a / max(white, 1e-30), 0.0, 1.0) ** (1.0 / gamma)
+    return np.round(v * 255).astype(np.uint8)
+
+
+def colormap(array, signed: bool = False, limit: float | None = None) -> np.ndarray:
+    """False colour `(H, W, 3)` uint8 RGB: inferno for magnitudes, blue-white-red for signed values."""
+    a = np.asarray(array, dtype=np.float64)
+    if a.ndim == 3:
+        a = a.mean(axis=2)
+    if limit is None:
+        finite = np.abs(a[np.isfinite(a)])
+        limit = float(np.percentile(finite, 99)) if finite.size else 1.0
+    limit = max(limit, 1e-30)
+    if signed:
+        t = np.clip(a / limit, -1, 1)
+        pos, neg = np.clip(t, 0, 1)[..., None], np.clip(-t, 0, 1)[..., None]
+        rgb = 1 - pos * np.array([0, 0.75, 0.75]) - neg * np.array([0.75, 0.75, 0])
+        return np.round(rgb * 255).astype(np.uint8)
+    grey = np.round(np.clip(a / limit, 0, 1) * 255).astype(np.uint8)
+    return cv2.applyColorMap(grey, cv2.COLORMAP_INFERNO)[..., ::-1].copy()
+
+
+def write_png(path, array, gamma: float = 2.2, exposure: float = 1.0, white: float | None = None) -> None:
+    """Write linear radiance `(H, W)` or `(H, W, 3)` as an 8-bit PNG through `tonemap`.
+
+    A `uint8` array is written as it is (already display-ready, e.g. a contact sheet).
+    """
+    a = np.asarray(array)
+    if a.dtype != np.uint8:
+        a = tonemap(_check_image(a), exposure=exposure, gamma=gamma, white=white)
+    elif a.ndim not in (2, 3):
+        raise ValueError(f"expected an image (H, W) or (H, W, 3), got shape {a.shape}")
+    _imwrite(path, a[..., ::-1] if a.ndim == 3 else a)
+
+
+def _imwrite(path, bgr) -> None:
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), bgr):
+            raise ValueError(f"OpenCV could not write {path}; check the extension")

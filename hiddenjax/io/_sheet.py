@@ -1,0 +1,48 @@
+"""Contact sheets: labelled panels side by side in one PNG."""
+
+import cv2
+import numpy as np
+
+from ._images import colormap, tonemap, write_png
+
+
+def panel(image, kind: str = "radiance", white: float | None = None) -> np.ndarray:
+    """One panel as uint8 RGB: `kind` is 'radiance' (tone mapped), 'map' (inferno) or 'signed'."""
+    a = np.asarray(image, dtype=np.float64)
+    if kind == "radiance":
+        rgb = tonemap(a, white=white)
+        return np.repeat(rgb[..., None], 3, -1) if rgb.ndim == 2 else rgb
+    if kind in ("map", "signed"):
+        return colormap(a, signed=kind == "signed", limit=white)
+    raise ValueError(f"panel kind must be 'radiance', 'map' or 'signed', got {kind!r}")
+
+
+def contact_sheet(path, panels, height: int = 256, columns: int | None = None) -> np.ndarray:
+    """Write labelled panels to a PNG and return the sheet (uint8 RGB).
+
+    `panels` is a sequence of `(title, image)` or `(title, image, kind)` or
+    `(title, image, kind, white)`; every panel is resized (nearest neighbour, so pixels stay
+    visible) to `height` rows and the sheet has `columns` panels per row (default: all).
+    """
+    if not panels:
+        raise ValueError("contact_sheet needs at least one panel")
+    tiles = []
+    for spec in panels:
+        title, image, *rest = spec
+        rgb = panel(image, *rest)
+        width = max(1, round(rgb.shape[1] * height / rgb.shape[0]))
+        rgb = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_NEAREST)
+        bar = np.full((24, width, 3), 255, np.uint8)
+        cv2.putText(bar, str(title), (4, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        tiles.append(np.concatenate([bar, rgb], axis=0))
+    columns = columns or len(tiles)
+    rows = []
+    for start in range(0, len(tiles), columns):
+        row = tiles[start : start + columns]
+        row = sum(([t, np.full((t.shape[0], 6, 3), 255, np.uint8)] for t in row), [])[:-1]
+        rows.append(np.concatenate(row, axis=1))
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 6), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in rows]
+    sheet = np.concatenate(rows, axis=0)
+    write_png(path, sheet)
+    return sheet
