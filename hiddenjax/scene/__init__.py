@@ -1,6 +1,7 @@
 """Scene description: environment grid, camera, surfaces, fixtures and set-ups."""
 
 from ._camera import Camera as Camera
+from ._fixtures import FIXTURES as FIXTURES
 from ._fixtures import coded_aperture as coded_aperture
 from ._fixtures import fixture as fixture
 from ._fixtures import mura_pattern as mura_pattern

@@ -97,7 +97,8 @@ class Camera(eqx.Module):
 
         Depth is the camera-space z (positive in front). JAX-differentiable.
         """
-        p = jnp.asarray(points) @ self.rotation.T + self.translation
+        points = jnp.asarray(points)
+        p = points @ self.rotation.T + self.translation.reshape((1,) * (points.ndim - 1) + (3,))
         fx, fy, cx, cy = self.intrinsics
         z = p[..., 2]
         row = fy * p[..., 1] / z + cy

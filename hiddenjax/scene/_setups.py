@@ -46,7 +46,7 @@ def object_on_plane(
     - `mesh`: a trimesh, a mesh path, or a fixture name ('teapot', 'sphere', 'coded_aperture').
     - `albedo`, `plane_albedo`: as `Surface` (the plane may take a texture over its UV square).
     - `elevation`, `azimuth`: camera direction in degrees (elevation above the plane; azimuth
-      about +y from +z towards +x). `distance` defaults to framing about 4 object sizes.
+      about +y from +z towards +x). `distance` defaults to framing about 3 object sizes.
 
     **Returns:** `Setup(scene, camera)`; the object has `observe=False` (it casts shadows but its
     pixels are left out of the default mask), the plane `observe=True`.
@@ -64,7 +64,7 @@ def object_on_plane(
     obj.apply_translation([-(lo[0] + hi[0]) / 2, -lo[1] + 1e-4 * size, -(lo[2] + hi[2]) / 2])
     tan = np.tan(np.radians(fov) / 2)
     if distance is None:
-        distance = 2.0 * size / tan
+        distance = 1.5 * size / tan
     plane = ground_plane(plane_size if plane_size is not None else 8 * distance)
     el, az = np.radians(elevation), np.radians(azimuth)
     origin = distance * np.array([np.sin(az) * np.cos(el), np.sin(el), np.cos(az) * np.cos(el)])

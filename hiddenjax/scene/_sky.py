@@ -9,7 +9,7 @@ def procedural_sky(
     height: int = 256,
     width: int = 512,
     *,
-    sun=(0.6, 1.2),
+    sun=(0.95, 2.0),
     sun_radiance: float = 2000.0,
     sun_radius_deg: float = 2.5,
     sources: int = 3,

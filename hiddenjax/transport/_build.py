@@ -76,14 +76,14 @@ def transport_matrix(
 
     sel = (pixels[:, None] * S + np.arange(S)).reshape(-1)
     points = _Points(hits, sel, lighting.caster.offset)
-    chunk = max(1, _CHUNK_PAIRS // (S * N * (1 + bounces * bounce_samples)))
+    chunk = max(1, _CHUNK_PAIRS // (S * N))
     starts = list(range(0, P, chunk))
     A = np.empty((P, N), dtype=np.float32)
     rays = 0
     with tqdm(total=P, unit="px", desc="transport matrix", disable=not progress, smoothing=0.1) as bar:
         for i, start in enumerate(starts):
             chunk_points = points.take(slice(start * S, (start + chunk) * S))
-            rows, n_rays = _chunk_rows(lighting, chunk_points, S, bounces, bounce_samples, [seed, 1, i])
+            rows, n_rays = _chunk_rows(lighting, chunk_points, S, bounces, bounce_samples, (seed, i))
             A[start : start + len(rows)] = rows
             rays += n_rays
             bar.update(len(rows))
@@ -140,12 +140,16 @@ class _Points:
 
 
 def _chunk_rows(lighting: DirectLighting, pts: _Points, S: int, bounces: int, paths: int, seed):
-    """Rows of `A` for one chunk of pixels: mean over footprint samples of direct + bounced light."""
-    rng = np.random.default_rng(seed)
-    E, rays = lighting.rows(pts.position, pts.normal, pts.surface, rng)
+    """Rows of `A` for one chunk of pixels: mean over footprint samples of direct + bounced light.
+
+    Direct and indirect light draw from separate streams, so adding bounces leaves the direct
+    part of `A` unchanged for a given seed.
+    """
+    seed, chunk = seed
+    E, rays = lighting.rows(pts.position, pts.normal, pts.surface, np.random.default_rng([seed, 1, chunk]))
     radiance = (pts.albedo / np.pi)[:, None] * E
     if bounces:
-        indirect, more = _indirect(lighting, pts, bounces, paths, rng)
+        indirect, more = _indirect(lighting, pts, bounces, paths, np.random.default_rng([seed, 2, chunk]))
         radiance += indirect
         rays += more
     rows = radiance.reshape(-1, S, radiance.shape[1]).mean(axis=1)
@@ -159,27 +163,26 @@ def _indirect(lighting: DirectLighting, pts: "_Points", bounces: int, paths: int
     the product of the albedos met so far, divided by the number of paths.
     """
     caster = lighting.caster
-    M = len(pts.position)
-    owner = np.repeat(np.arange(M), paths)
-    pos, nrm = pts.position[owner], pts.normal[owner]
-    throughput = pts.albedo[owner] / paths
-    out = np.zeros((M, lighting.grid.size))
+    out = np.zeros((len(pts.position), lighting.grid.size))
     rays = 0
-    for _ in range(bounces):
-        w = _cosine_directions(nrm, rng)
-        hits = caster.intersect(pos, w)
-        rays += len(pos)
-        alive = hits.surface >= 0
-        if not np.any(alive):
-            break
-        owner, throughput, w = owner[alive], throughput[alive], w[alive]
-        nrm = hits.normal[alive]
-        pos = hits.position[alive] + caster.offset * nrm
-        E, n_rays = lighting.rows(pos, nrm, hits.surface[alive], rng)
-        rays += n_rays
-        albedo = hits.albedo[alive]
-        np.add.at(out, owner, (throughput * albedo / np.pi)[:, None] * E)
-        throughput = throughput * albedo
+    for _ in range(paths):  # one path per point per pass bounds the temporaries
+        owner = np.arange(len(pts.position))
+        pos, nrm, throughput = pts.position, pts.normal, pts.albedo / paths
+        for _ in range(bounces):
+            w = _cosine_directions(nrm, rng)
+            hits = caster.intersect(pos, w)
+            rays += len(pos)
+            alive = hits.surface >= 0
+            if not np.any(alive):
+                break
+            owner, throughput = owner[alive], throughput[alive]
+            nrm = hits.normal[alive]
+            pos = hits.position[alive] + caster.offset * nrm
+            E, n_rays = lighting.rows(pos, nrm, hits.surface[alive], rng)
+            rays += n_rays
+            albedo = hits.albedo[alive]
+            np.add.at(out, owner, (throughput * albedo / np.pi)[:, None] * E)
+            throughput = throughput * albedo
     return out, rays
 
 

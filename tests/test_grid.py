@@ -1,0 +1,117 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import hiddenjax as hj
+from hiddenjax.scene import direction
+
+GRIDS = [hj.EnvGrid(4, 8), hj.EnvGrid(16, 32), hj.EnvGrid(7, 10)]
+
+
+@pytest.mark.parametrize("grid", GRIDS)
+def test_solid_angles_sum_to_4pi(grid):
+    assert grid.solid_angles().sum() == pytest.approx(4 * np.pi, rel=1e-12)
+    assert np.all(grid.solid_angles() > 0)
+
+
+def test_conventions_of_design_md():
+    grid = hj.EnvGrid(32, 64)
+    d = grid.directions()
+    assert d[0, 0, 1] > 0.99 and d[-1, 0, 1] < -0.99  # row 0 is the zenith (+y)
+    theta, phi = np.pi / 2, np.pi / 2
+    assert np.allclose(direction(theta, phi), [1, 0, 0])  # d = (sin phi sin theta, cos theta, -cos phi sin theta)
+    assert np.allclose(direction(theta, 0.0), [0, 0, -1])
+    assert np.allclose(np.linalg.norm(d, axis=-1), 1)
+    assert grid.upper_hemisphere().sum() == 16 * 64 and grid.upper_hemisphere()[15].all()
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(0.001, np.pi - 0.001), st.floats(0.0, 2 * np.pi - 1e-6))
+def test_direction_pixel_round_trip(theta, phi):
+    grid = hj.EnvGrid(16, 32)
+    i, j = grid.direction_to_pixel(direction(theta, phi))
+    t0, t1, p0, p1 = (b[i, j] for b in grid.pixel_bounds())
+    assert t0 - 1e-9 <= theta <= t1 + 1e-9 and p0 - 1e-9 <= phi <= p1 + 1e-9
+    # and a pixel's centre maps back to that pixel
+    ci, cj = grid.direction_to_pixel(grid.directions()[i, j])
+    assert (ci, cj) == (i, j)
+
+
+def test_direction_to_angles_inverts_direction():
+    grid = hj.EnvGrid(16, 32)
+    theta, phi = hj.scenes.direction_to_angles(grid.directions())
+    ct, cp = grid.centers()
+    assert np.allclose(theta, ct) and np.allclose(phi, cp)
+
+
+def test_stratified_samples_stay_inside_their_pixel_and_are_uniform_in_solid_angle():
+    grid = hj.EnvGrid(8, 16)
+    rng = np.random.default_rng(0)
+    from hiddenjax.scene._sampling import stratified_square
+
+    pixels = np.arange(grid.size)[:, None]
+    w = grid.sample_directions(pixels, stratified_square(rng, grid.size, 4096))
+    i, j = grid.direction_to_pixel(w)
+    assert np.all(i * grid.width + j == pixels)
+    # the mean direction times the solid angle is the exact first moment
+    mc = w.mean(axis=1) * grid.solid_angles().reshape(-1, 1)
+    assert np.allclose(mc, grid.direction_moments().reshape(-1, 3), atol=2e-4)
+
+
+def test_cosine_range_brackets_brute_force():
+    grid = hj.EnvGrid(8, 16)
+    rng = np.random.default_rng(1)
+    n = rng.normal(size=(40, 3))
+    n = np.concatenate([n / np.linalg.norm(n, axis=1, keepdims=True), [[0, 1, 0], [0, -1, 0], [1, 0, 0]]])
+    lo, hi = grid.cosine_range(n)
+    u = np.stack(np.meshgrid(np.linspace(0, 1, 41), np.linspace(0, 1, 41), indexing="ij"), -1).reshape(-1, 2)
+    w = grid.sample_directions(np.arange(grid.size)[:, None], np.broadcast_to(u, (grid.size,) + u.shape))
+    c = np.einsum("mc,nsc->mns", n, w)
+    assert np.all(lo <= c.min(-1) + 1e-12) and np.all(hi >= c.max(-1) - 1e-12)
+    assert np.max(c.min(-1) - lo) < 2e-3 and np.max(hi - c.max(-1)) < 2e-3  # tight, not just safe
+
+
+def test_difference_operator_zero_on_constant_and_wraps():
+    grid = hj.EnvGrid(4, 6)
+    assert np.allclose(grid.difference(jnp.full(grid.shape, 3.0)), 0)
+    x = np.zeros(grid.shape)
+    x[2, 0] = 1.0
+    d = np.asarray(grid.difference(x))
+    horizontal = d[(grid.height - 1) * grid.width :].reshape(grid.shape)
+    assert horizontal[2, grid.width - 1] == 1.0  # pair (2, W-1) -> (2, 0) wraps in longitude
+    assert horizontal[2, 0] == -1.0
+    assert d.shape == ((2 * grid.height - 1) * grid.width,)
+
+
+@pytest.mark.parametrize("grid", GRIDS)
+def test_difference_matrix_gram_and_matrix_free_agree(grid):
+    x = np.random.default_rng(2).normal(size=grid.shape)
+    D = grid.difference_matrix(dense=True)
+    assert np.allclose(D @ x.ravel(), grid.difference(x), atol=1e-6)
+    assert np.allclose(D.T @ D @ x.ravel(), np.asarray(grid.difference_gram(x)).ravel(), atol=1e-5)
+    assert np.allclose(grid.difference_matrix().toarray(), D)
+    # flat input, channel axis, and jit
+    assert np.allclose(jax.jit(grid.difference_gram)(x.ravel()), D.T @ D @ x.ravel(), atol=1e-5)
+    rgb = np.stack([x, 2 * x], -1)
+    assert np.allclose(np.asarray(grid.difference(rgb))[:, 1], 2 * D @ x.ravel(), atol=1e-5)
+
+
+def test_downsample_preserves_power_and_constants():
+    grid = hj.EnvGrid(8, 16)
+    assert np.allclose(grid.downsample(np.full((40, 70, 3), 2.5)), 2.5)  # non-integer ratio
+    pano = hj.scenes.procedural_sky(64, 128)
+    fine = hj.EnvGrid(64, 128)
+    coarse = grid.downsample(pano)
+    power = lambda g, m: np.einsum("ij,ijc->c", g.solid_angles(), m)
+    assert np.allclose(power(grid, coarse), power(fine, pano), rtol=1e-5)
+    with pytest.raises(ValueError, match="non-finite"):
+        grid.downsample(np.full((8, 16), np.nan))
+
+
+def test_bad_grid_sizes():
+    for h, w in [(0, 8), (4, 1), (4.5, 8)]:
+        with pytest.raises(ValueError):
+            hj.EnvGrid(h, w)
