@@ -1,0 +1,105 @@
+"""Optional Mitsuba 3 interop: the same scene, camera and env map rendered by Mitsuba's integrators.
+
+Used to cross-check `render(T, x)` and to time the user's alternative (one render per column of
+`A`). Mitsuba is not a dependency: `pip install mitsuba`; its fast LLVM variant needs a
+`libLLVM.so` (Debian: `libllvm19`), found automatically or through `DRJIT_LIBLLVM_PATH`.
+"""
+
+import glob
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..scene import Camera, EnvGrid, Scene
+
+
+def mitsuba_variant() -> str:
+    """Select and return Mitsuba's variant: `llvm_ad_rgb` when LLVM is found, else `scalar_rgb`."""
+    if not os.environ.get("DRJIT_LIBLLVM_PATH"):
+        found = sorted(glob.glob("/usr/lib/*/libLLVM*.so*") + glob.glob("/usr/lib/llvm-*/lib/libLLVM*.so*"))
+        if found:
+            os.environ["DRJIT_LIBLLVM_PATH"] = found[-1]
+    import mitsuba as mi
+
+    for variant in ("llvm_ad_rgb", "scalar_rgb"):
+        try:
+            mi.set_variant(variant)
+            return variant
+        except (ImportError, AttributeError):
+            continue
+    raise ImportError("no usable Mitsuba variant (llvm_ad_rgb or scalar_rgb)")
+
+
+def upsample_for_mitsuba(envmap, factor: int = 8) -> np.ndarray:
+    """Our cell map `(H, W[, C])` -> an RGB bitmap `(kH, kW, 3)` for Mitsuba's `envmap`.
+
+    Mitsuba puts bitmap row `r` at `theta = r pi/(rows - 1)` (DESIGN.md section 2), so each row
+    takes the cell containing that angle; a large `factor` keeps cell edges sharp.
+    """
+    env = np.asarray(envmap, dtype=np.float32)
+    env = np.repeat(env[..., None], 3, -1) if env.ndim == 2 else env
+    H, W = env.shape[:2]
+    rows = factor * H
+    theta = np.arange(rows) * np.pi / (rows - 1)
+    cell = np.minimum((theta * H / np.pi).astype(int), H - 1)
+    return np.ascontiguousarray(np.repeat(env[cell], factor, axis=1))
+
+
+class MitsubaRenderer:
+    """A Mitsuba scene built from ours; `render(envmap, spp)` re-lights it without reloading meshes.
+
+    `integrator` is Mitsuba's ('direct' to match `bounces=0`, 'path' with `max_depth` for global
+    illumination). Surfaces must have constant albedo; the camera must be a centred pinhole.
+    """
+
+    def __init__(self, scene: Scene, camera: Camera, grid: EnvGrid, integrator: str = "direct",
+                 max_depth: int = 4, upsample: int = 8):
+        self.variant = mitsuba_variant()
+        import mitsuba as mi
+
+        self._mi = mi
+        self.grid, self.upsample = grid, upsample
+        fx, fy, cx, cy = np.asarray(camera.intrinsics, dtype=np.float64)
+        if not (np.isclose(fx, fy) and np.isclose(cx, camera.width / 2) and np.isclose(cy, camera.height / 2)):
+            raise ValueError("Mitsuba export needs square pixels and a centred principal point")
+        R = np.asarray(camera.rotation, dtype=np.float64)
+        origin = np.asarray(camera.origin, dtype=np.float64)
+        fov = np.degrees(2 * np.arctan(camera.width / (2 * fx)))
+        self._tmp = tempfile.TemporaryDirectory(prefix="hiddenjax-mitsuba-")
+        shapes = {}
+        for k, surface in enumerate(scene):
+            if surface.albedo.ndim != 0:
+                raise ValueError("Mitsuba export supports constant albedo only")
+            path = Path(self._tmp.name) / f"surface{k}.ply"
+            surface.mesh.export(path)
+            shapes[f"surface{k}"] = {
+                "type": "ply", "filename": str(path), "face_normals": True,
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": float(surface.albedo)}},
+            }
+        integ = {"type": integrator}
+        if integrator == "path":
+            integ["max_depth"] = int(max_depth)
+        self.scene = mi.load_dict({
+            "type": "scene",
+            "integrator": integ,
+            "sensor": {
+                "type": "perspective", "fov": float(fov), "fov_axis": "x",
+                "to_world": mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=(origin + R[2]).tolist(),
+                                                           up=(-R[1]).tolist()),
+                "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
+                         "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+            },
+            "env": {"type": "envmap", "bitmap": mi.Bitmap(upsample_for_mitsuba(np.ones(grid.shape), upsample))},
+            **shapes,
+        })
+        self.params = mi.traverse(self.scene)
+
+    def render(self, envmap, spp: int = 64, seed: int = 0) -> np.ndarray:
+        """Render under `envmap (H, W[, 3])` on the grid; returns `(h, w, 3)` float32 radiance."""
+        mi = self._mi
+        env = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(upsample_for_mitsuba(envmap, self.upsample))})
+        self.params["env.data"] = mi.traverse(env)["data"]
+        self.params.update()
+        return np.array(mi.render(self.scene, spp=spp, seed=seed), dtype=np.float32)

@@ -1,0 +1,82 @@
+import os
+
+import numpy as np
+import pytest
+
+import hiddenjax as hj
+
+
+@pytest.mark.parametrize("shape", [(5, 7), (5, 7, 3)])
+def test_exr_round_trip_is_exact(tmp_path, shape):
+    a = np.random.default_rng(0).uniform(0, 1e4, size=shape).astype(np.float32)
+    hj.io.write_exr(tmp_path / "a.exr", a)
+    b = hj.io.read_exr(tmp_path / "a.exr")
+    assert b.dtype == np.float32 and b.shape == shape and np.array_equal(a, b)
+
+
+def test_hdr_round_trip_within_rgbe_precision(tmp_path):
+    a = np.random.default_rng(1).uniform(0.01, 100, size=(6, 4, 3)).astype(np.float32)
+    hj.io.write_hdr(tmp_path / "a.hdr", a)
+    b = hj.io.read_hdr(tmp_path / "a.hdr")
+    # RGBE: 8-bit mantissas under one shared exponent, so the quantum is set by the pixel's largest channel
+    quantum = a.max(axis=-1, keepdims=True) / 128
+    assert b.shape == a.shape and np.all(np.abs(b - a) <= quantum)
+
+
+def test_png_tonemap_exposure_gamma_clipping(tmp_path):
+    v = np.array([[0.0, 0.25, 1.0, 4.0]], dtype=np.float32)
+    out = hj.io.tonemap(v, exposure=1.0, gamma=2.2, white=1.0)
+    assert list(out[0]) == [0, round(0.25 ** (1 / 2.2) * 255), 255, 255]
+    assert hj.io.tonemap(v, exposure=4.0, white=1.0)[0, 1] == 255
+    hj.io.write_png(tmp_path / "a.png", np.ones((4, 4, 3)))
+    import cv2
+
+    assert cv2.imread(str(tmp_path / "a.png")).shape == (4, 4, 3)
+
+
+def test_contact_sheet(tmp_path):
+    img = np.random.default_rng(2).uniform(size=(16, 16, 3))
+    sheet = hj.io.contact_sheet(
+        tmp_path / "s.png", [("a", img), ("b", img[..., 0], "map"), ("c", img[..., 0] - 0.5, "signed")], height=32
+    )
+    assert sheet.dtype == np.uint8 and sheet.shape[0] > 32 and (tmp_path / "s.png").exists()
+
+
+def test_bad_input_leaves_no_partial_file(tmp_path):
+    bad = np.ones((4, 4), np.float32)
+    bad[0, 0] = np.nan
+    for writer, name in [(hj.io.write_exr, "a.exr"), (hj.io.write_png, "a.png"), (hj.io.write_hdr, "a.hdr")]:
+        with pytest.raises(ValueError, match="non-finite"):
+            writer(tmp_path / name, bad)
+    with pytest.raises(ValueError, match="non-negative"):
+        hj.io.write_hdr(tmp_path / "n.hdr", -np.ones((2, 2)))
+    with pytest.raises(ValueError, match="shape"):
+        hj.io.write_exr(tmp_path / "s.exr", np.ones((2, 2, 5)))
+    with pytest.raises(ValueError, match="does not exist"):
+        hj.io.write_exr(tmp_path / "missing" / "a.exr", np.ones((2, 2)))
+    assert os.listdir(tmp_path) == []
+
+
+def test_failed_write_keeps_the_old_file(tmp_path, monkeypatch):
+    path = tmp_path / "a.exr"
+    hj.io.write_exr(path, np.ones((2, 2)))
+    import OpenEXR
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(OpenEXR.File, "write", broken)
+    with pytest.raises(RuntimeError):
+        hj.io.write_exr(path, np.zeros((2, 2)))
+    assert np.array_equal(hj.io.read_exr(path), np.ones((2, 2))) and os.listdir(tmp_path) == ["a.exr"]
+
+
+def test_read_errors(tmp_path):
+    with pytest.raises(ValueError, match="not found"):
+        hj.io.read_exr(tmp_path / "none.exr")
+    (tmp_path / "junk.exr").write_bytes(b"junk")
+    with pytest.raises(ValueError, match="OpenEXR"):
+        hj.io.read_exr(tmp_path / "junk.exr")
+    (tmp_path / "junk.hdr").write_bytes(b"junk")
+    with pytest.raises(ValueError, match="hdr"):
+        hj.io.read_hdr(tmp_path / "junk.hdr")
