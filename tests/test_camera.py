@@ -96,3 +96,14 @@ def test_bad_opencv():
         hj.Camera.from_opencv(np.eye(3), 2 * np.eye(3), np.zeros(3), 8, 8)
     with pytest.raises(ValueError, match="finite"):
         hj.Camera.from_opencv(np.eye(3), np.eye(3), [0, np.nan, 0], 8, 8)
+
+
+def test_primary_rays_pass_through_their_pixels():
+    cam = hj.Camera.look_at([0, 1, 2], [0, 0, 0], [0, 1, 0], 40.0, 10, 8)
+    origin, d = cam.primary_rays(4, seed=2)
+    assert d.shape == (8, 10, 4, 3) and np.allclose(origin, [0, 1, 2], atol=1e-6)
+    (rc), _ = cam.project(origin + 3.0 * d)
+    rows, cols = np.meshgrid(np.arange(8), np.arange(10), indexing="ij")
+    rc = np.asarray(rc)
+    for k, idx in ((0, rows), (1, cols)):  # inside [i, i+1) up to float32 round-off
+        assert np.all(rc[..., k] > idx[..., None] - 1e-3) and np.all(rc[..., k] < idx[..., None] + 1 + 1e-3)

@@ -115,3 +115,11 @@ def test_bad_grid_sizes():
     for h, w in [(0, 8), (4, 1), (4.5, 8)]:
         with pytest.raises(ValueError):
             hj.EnvGrid(h, w)
+
+
+def test_public_stratified_directions():
+    grid = hj.EnvGrid(4, 8)
+    w = grid.stratified_directions(9, seed=1)
+    assert w.shape == (4, 8, 9, 3) and np.allclose(np.linalg.norm(w, axis=-1), 1)
+    i, j = grid.direction_to_pixel(w)
+    assert np.all(i == np.arange(4)[:, None, None]) and np.all(j == np.arange(8)[None, :, None])

@@ -123,6 +123,12 @@ class Camera(eqx.Module):
         base = np.stack([rows, cols], -1).reshape(-1, 1, 2)
         return (base + u).reshape(self.height, self.width, pixel_samples, 2)
 
+    def primary_rays(self, pixel_samples: int, seed: int = 0):
+        """`(origin (3,), directions (H, W, S, 3))` float64 through stratified footprint samples."""
+        pixels = self.footprint_samples(pixel_samples, seed)
+        directions = np.asarray(self.ray_directions(pixels.reshape(-1, 2)), dtype=np.float64)
+        return np.asarray(self.origin, dtype=np.float64), directions.reshape(pixels.shape[:3] + (3,))
+
 
 def _check_size(width, height):
     for name, v in (("width", width), ("height", height)):

@@ -5,6 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse
 
+from ._sampling import stratified_square
+
 
 def direction(theta, phi):
     """Unit direction towards the light at polar angle `theta` (from +y) and azimuth `phi`.
@@ -158,16 +160,26 @@ class EnvGrid(eqx.Module):
         """Map unit-square samples `u (..., 2)` into pixels (flat indices `(...)`), uniform in solid angle.
 
         `cos theta` is interpolated linearly between the pixel's bounds and `phi` likewise, so
-        stratified `u` gives directions stratified inside each pixel. Returns `(..., 3)`.
+        stratified `u` gives directions stratified inside each pixel. Returns `(..., 3)` in
+        `u`'s float dtype.
         """
-        pixels = np.asarray(pixels)
-        i, j = np.divmod(pixels, self.width)
-        c0 = np.cos(i * np.pi / self.height)
-        c1 = np.cos((i + 1) * np.pi / self.height)
-        cos_theta = c0 + u[..., 0] * (c1 - c0)
-        phi = (j + u[..., 1]) * (2 * np.pi / self.width)
-        sin_theta = np.sqrt(np.maximum(0.0, 1.0 - cos_theta**2))
-        return np.stack([np.sin(phi) * sin_theta, cos_theta, -np.cos(phi) * sin_theta], axis=-1)
+        u = np.asarray(u)
+        i, j = np.divmod(np.asarray(pixels), self.width)
+        edges = np.cos(self.theta_edges()).astype(u.dtype)
+        c0 = edges[i]
+        cos_theta = c0 + u[..., 0] * (edges[i + 1] - c0)
+        phi = (j + u[..., 1]) * u.dtype.type(2 * np.pi / self.width)
+        sin_theta = np.sqrt(np.maximum(0, 1 - cos_theta * cos_theta))
+        out = np.empty(u.shape[:-1] + (3,), dtype=u.dtype)
+        np.multiply(np.sin(phi), sin_theta, out=out[..., 0])
+        out[..., 1] = cos_theta
+        np.multiply(np.cos(phi), -sin_theta, out=out[..., 2])
+        return out
+
+    def stratified_directions(self, samples: int, seed: int = 0) -> np.ndarray:
+        """`samples` stratified directions inside every pixel, uniform in solid angle, `(H, W, S, 3)`."""
+        u = stratified_square(np.random.default_rng([seed, 0xD1]), self.size, samples)
+        return self.sample_directions(np.arange(self.size)[:, None], u).reshape(self.shape + (samples, 3))
 
     def upper_hemisphere(self) -> np.ndarray:
         """Boolean `(H, W)` mask of rows `0 .. H/2 - 1` (directions above the horizon)."""

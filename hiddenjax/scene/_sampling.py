@@ -3,21 +3,20 @@
 import numpy as np
 
 
-def stratified_square(rng: np.random.Generator, count: int, samples: int) -> np.ndarray:
-    """`count` independent sets of `samples` stratified points in `[0, 1)^2`.
+def stratified_square(rng: np.random.Generator, count: int, samples: int, dtype=np.float64) -> np.ndarray:
+    """`count` independent sets of `samples` jittered-grid points in `[0, 1)^2`.
 
-    A perfect square `samples = k*k` gives a jittered `k x k` grid; any other count gives a Latin
-    hypercube (one sample in each of `samples` rows and of `samples` columns), which still
-    stratifies both axes.
+    `samples = k * m` with `k` the largest divisor not above `sqrt(samples)`: one uniform point in
+    each cell of a `k x m` grid (a square grid when `samples` is a perfect square, a row of strata
+    when it is prime).
 
-    **Returns:** `(count, samples, 2)` float64.
+    **Returns:** `(count, samples, 2)`.
     """
     if samples < 1:
         raise ValueError(f"samples must be >= 1, got {samples}")
-    k = int(round(np.sqrt(samples)))
-    jitter = rng.random((count, samples, 2))
-    if k * k == samples:
-        cell = np.stack(np.divmod(np.arange(samples), k), axis=-1)  # (S, 2)
-        return (cell[None] + jitter) / k
-    strata = np.argsort(rng.random((count, samples, 2)), axis=1)
-    return (strata + jitter) / samples
+    k = max(d for d in range(1, int(np.sqrt(samples)) + 1) if samples % d == 0)
+    m = samples // k
+    row, col = np.divmod(np.arange(samples), m)
+    offset = np.stack([row / k, col / m], axis=-1).astype(dtype)
+    scale = np.array([1 / k, 1 / m], dtype=dtype)
+    return offset + rng.random((count, samples, 2), dtype=dtype) * scale

@@ -1,5 +1,9 @@
 """`transport_matrix`: build `A` with Embree, chunked over pixels with bounded temporaries."""
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
@@ -13,7 +17,7 @@ DEFAULT_SAMPLES = 16
 DEFAULT_PIXEL_SAMPLES = 4
 DEFAULT_MAX_BYTES = 8 << 30
 # Work per chunk in (footprint point x env pixel) pairs: keeps temporaries to tens of MB.
-_CHUNK_PAIRS = 1 << 19
+_CHUNK_PAIRS = 1 << 18
 
 
 def transport_matrix(
@@ -28,6 +32,7 @@ def transport_matrix(
     bounces: int = 0,
     bounce_samples: int = 1,
     keep_occluder: bool = False,
+    threads: int | None = None,
     max_bytes: int = DEFAULT_MAX_BYTES,
     progress: bool = True,
 ) -> TransportMatrix:
@@ -47,11 +52,14 @@ def transport_matrix(
       stream, so the result does not depend on the chunk order).
     - `bounces`: 0 is direct light; `k >= 1` adds `k` diffuse interreflections along
       `bounce_samples` cosine-weighted paths per footprint sample.
+    - `threads`: chunks in flight at once (default: the number of cores). Numpy releases the GIL,
+      so Embree queries of one chunk overlap the arithmetic of another; results do not depend
+      on it.
     - `max_bytes`: fail at once if `A` would need more memory than this.
     - `progress`: show a progress bar of pixels done and rays cast.
 
     **Returns:** a `TransportMatrix` with float32 `A`. Peak memory is about `A` plus a few tens
-    of MB of per-chunk temporaries. Runs in one process: embreex holds the GIL while it casts.
+    of MB of temporaries per thread.
     """
     if not isinstance(scene, Scene):
         raise ValueError(f"scene must be a hiddenjax Scene, got {type(scene).__name__}")
@@ -78,19 +86,32 @@ def transport_matrix(
     points = _Points(hits, sel, lighting.caster.offset)
     chunk = max(1, _CHUNK_PAIRS // (S * N))
     starts = list(range(0, P, chunk))
-    A = np.empty((P, N), dtype=np.float32)
+    A = _aligned_empty((P, N))
     rays = 0
-    with tqdm(total=P, unit="px", desc="transport matrix", disable=not progress, smoothing=0.1) as bar:
+
+    def work(i):
+        start = starts[i]
+        chunk_points = points.take(slice(start * S, (start + chunk) * S))
+        return _chunk_rows(lighting, chunk_points, S, bounces, bounce_samples, (seed, i))
+
+    threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
+    with ThreadPoolExecutor(threads) as pool, tqdm(
+        total=P, unit="px", desc="transport matrix", disable=not progress, smoothing=0.1
+    ) as bar:
+        # Submit in windows so at most ~2 chunks per thread are in flight (bounded memory).
+        window = 2 * threads
+        pending = {i: pool.submit(work, i) for i in range(min(window, len(starts)))}
         for i, start in enumerate(starts):
-            chunk_points = points.take(slice(start * S, (start + chunk) * S))
-            rows, n_rays = _chunk_rows(lighting, chunk_points, S, bounces, bounce_samples, (seed, i))
+            rows, n_rays = pending.pop(i).result()
+            if i + window < len(starts):
+                pending[i + window] = pool.submit(work, i + window)
             A[start : start + len(rows)] = rows
             rays += n_rays
             bar.update(len(rows))
             bar.set_postfix_str(f"{rays / 1e6:.1f} M rays", refresh=False)
     albedo = points.albedo.reshape(P, S).mean(axis=1)
     return TransportMatrix(
-        A=jnp.asarray(A),
+        A=jax.device_put(A),  # aliases the aligned buffer on CPU: no second copy of A
         albedo=jnp.asarray(albedo, dtype=jnp.float32),
         pixels=jnp.asarray(pixels, dtype=jnp.int32),
         grid=grid,
@@ -100,6 +121,14 @@ def transport_matrix(
         bounces=int(bounces),
         seed=int(seed),
     )
+
+
+def _aligned_empty(shape, align: int = 64) -> np.ndarray:
+    """An uninitialized float32 array whose buffer is `align`-byte aligned (XLA can then alias it)."""
+    nbytes = int(np.prod(shape)) * 4
+    raw = np.empty(nbytes + align, dtype=np.uint8)
+    offset = (-raw.ctypes.data) % align
+    return raw[offset : offset + nbytes].view(np.float32).reshape(shape)
 
 
 def _observed_pixels(scene, hits: Hits, shape, S, mask, keep_occluder) -> np.ndarray:

@@ -19,8 +19,8 @@ from ..scene import EnvGrid, Scene
 from ..scene._sampling import stratified_square
 from ._embree import RayCaster
 
-# Samples handled per vectorized block: bounds temporaries to ~100 MB.
-_BLOCK = 1 << 20
+# Direction samples handled per vectorized block: bounds the temporaries to ~30 MB per thread.
+_BLOCK = 1 << 18
 
 
 class DirectLighting:
@@ -81,7 +81,7 @@ class DirectLighting:
         per_block = max(1, _BLOCK // S)
         for start in range(0, len(m_idx), per_block):
             m, j = m_idx[start : start + per_block], j_idx[start : start + per_block]
-            w = self.grid.sample_directions(j[:, None], stratified_square(rng, len(m), S))  # (K,S,3)
+            w = self.grid.sample_directions(j[:, None], stratified_square(rng, len(m), S, np.float32))  # (K,S,3)
             cos = np.einsum("kc,ksc->ks", n[m], w)
             in_cone = np.zeros(cos.shape, dtype=bool)
             for active, axis, cos_alpha in cones:

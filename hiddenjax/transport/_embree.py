@@ -69,7 +69,7 @@ class RayCaster:
 
 def primary_hits(caster: RayCaster, camera: Camera, pixel_samples: int, seed: int):
     """`(hits, directions)` of `pixel_samples` stratified rays per pixel, `(H*W*S,)` in row-major order."""
-    pixels = camera.footprint_samples(pixel_samples, seed).reshape(-1, 2)
-    directions = np.asarray(camera.ray_directions(pixels), dtype=np.float64)
-    origins = np.broadcast_to(np.asarray(camera.origin, dtype=np.float64), directions.shape)
+    origin, directions = camera.primary_rays(pixel_samples, seed)
+    directions = directions.reshape(-1, 3)
+    origins = np.broadcast_to(origin, directions.shape)
     return caster.intersect(origins, directions), directions

@@ -1,0 +1,241 @@
+"""Transport-matrix build: throughput vs raw Embree, memory, scaling, accuracy vs time (and vs Mitsuba).
+
+    python benchmarks/bench_transport.py [--quick] [--out DIR]
+
+Every baseline is measured in the same run. Accuracy is the median relative column error of a
+matrix against a high-sample reference of the same model: hiddenjax against `samples=32,
+pixel_samples=16` with another seed on a random eighth of the pixels (footprint noise counts, as
+it does in Mitsuba's spp),
+Mitsuba's path tracer (max depth 4, one launch per column) against 1024 spp on a random subset of
+upper-hemisphere columns, its time extrapolated to all columns.
+"""
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+import hiddenjax as hj  # noqa: E402
+from hiddenjax.transport._embree import RayCaster, primary_hits  # noqa: E402
+
+
+def build(setup, grid, **kw):
+    t0 = time.perf_counter()
+    T = hj.transport_matrix(setup.scene, setup.camera, grid, progress=False, **kw)
+    return T, time.perf_counter() - t0
+
+
+def common_rows(T, ref):
+    """Rows of two transport matrices restricted to the pixels both observe."""
+    shared, ia, ib = np.intersect1d(np.asarray(T.pixels), np.asarray(ref.pixels), return_indices=True)
+    return np.asarray(T.A)[ia], np.asarray(ref.A)[ib]
+
+
+def column_errors(A, ref):
+    """Relative error of each nonzero column of `A (P, N)` against `ref (P, N)`."""
+    A, ref = np.asarray(A, dtype=np.float64), np.asarray(ref, dtype=np.float64)
+    norms = np.linalg.norm(ref, axis=0)
+    keep = norms > 0
+    return np.linalg.norm(A - ref, axis=0)[keep] / norms[keep]
+
+
+def raw_embree_rate(setup, rays: int, seed=0):
+    """Occlusion queries per second of embreex on `rays` rays from the observed surface points."""
+    caster = RayCaster(setup.scene)
+    hits, _ = primary_hits(caster, setup.camera, 1, seed)
+    on_plane = hits.surface == 0
+    rng = np.random.default_rng(seed)
+    batch = min(rays, 1 << 22)
+    idx = rng.integers(0, on_plane.sum(), batch)
+    origins = hits.position[on_plane][idx] + caster.offset * hits.normal[on_plane][idx]
+    d = rng.normal(size=(batch, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)  # uniform over the sphere, as the N columns are
+    origins, d = origins.astype(np.float32), d.astype(np.float32)
+    done, elapsed = 0, 0.0
+    while done < rays:
+        n = min(batch, rays - done)
+        t0 = time.perf_counter()
+        caster.occluded(origins[:n], d[:n])
+        elapsed += time.perf_counter() - t0
+        done += n
+    return rays / elapsed
+
+
+_MEMORY_PROBE = """
+import json, resource, sys
+import hiddenjax as hj
+size, H, W, S, px = map(int, sys.argv[1:6])
+setup = hj.scenes.object_on_plane("teapot", width=size, height=size)
+hj.transport_matrix(setup.scene, setup.camera, hj.EnvGrid(4, 8), samples=1, pixel_samples=1, progress=False)
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+T = hj.transport_matrix(setup.scene, setup.camera, hj.EnvGrid(H, W), samples=S, pixel_samples=px, progress=False)
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+print(json.dumps(dict(increase=peak - base, A=T.A.nbytes)))
+"""
+
+
+def peak_memory(size, grid, samples, pixel_samples):
+    """Growth of the peak resident set of a fresh process during one build (Embree and XLA included)."""
+    args = [str(v) for v in (size, grid.height, grid.width, samples, pixel_samples)]
+    out = subprocess.run([sys.executable, "-c", _MEMORY_PROBE, *args], capture_output=True, text=True, check=True)
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    return r["increase"], r["A"]
+
+
+def mitsuba_columns(setup, grid, T_mask, spps, ref_spp, n_columns, seed=0):
+    """Mitsuba path tracer, one launch per column: time per column and column errors per spp."""
+    try:
+        from hiddenjax.transport._mitsuba import MitsubaRenderer
+    except ImportError:
+        return None
+    try:
+        renderer = MitsubaRenderer(setup.scene, setup.camera, grid, integrator="path", max_depth=4)
+    except ImportError as e:
+        return {"skipped": str(e)}
+    rng = np.random.default_rng(seed)
+    columns = rng.choice(grid.size // 2, size=n_columns, replace=False)  # upper hemisphere
+    out = {"variant": renderer.variant, "columns": columns.tolist(), "per_spp": {}}
+
+    def render_columns(spp, s):
+        cols, t = [], 0.0
+        for j in columns:
+            env = np.zeros(grid.size)
+            env[j] = 1.0
+            t0 = time.perf_counter()
+            img = renderer.render(env.reshape(grid.shape), spp=spp, seed=s)
+            t += time.perf_counter() - t0
+            cols.append(img.mean(axis=2)[T_mask])
+        return np.stack(cols, 1), t
+
+    renderer.render(np.ones(grid.shape), spp=1)  # JIT warm-up, not timed
+    ref, _ = render_columns(ref_spp, 12345)
+    for spp in spps:
+        cols, t = render_columns(spp, 1)
+        out["per_spp"][spp] = dict(
+            seconds_all_columns=t / n_columns * grid.size,
+            median_column_error=float(np.median(column_errors(cols, ref))),
+        )
+    return out
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("out/bench_transport"))
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--no-mitsuba", action="store_true")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    q = args.quick
+    size, grid = (48, hj.EnvGrid(8, 16)) if q else (128, hj.EnvGrid(32, 64))
+    setup = hj.scenes.object_on_plane("teapot", width=size, height=size)
+    faces = len(setup.scene[1].triangles)
+    results = dict(config=dict(image=size, grid=list(grid.shape), occluder_faces=faces, quick=q))
+    rows = []
+
+    build(setup, hj.EnvGrid(4, 8), samples=1, pixel_samples=1)  # warm-up (JAX, Embree), not timed
+    # 1. throughput against raw Embree, same number of (pixel, direction-sample) pairs
+    T, t = build(setup, grid, samples=16, pixel_samples=1)
+    pairs = T.A.shape[0] * grid.size * 16
+    raw = raw_embree_rate(setup, pairs)
+    results["throughput"] = dict(pairs=pairs, build_seconds=t, pairs_per_second=pairs / t,
+                                 raw_embree_rays_per_second=raw, ratio_to_raw=pairs / t / raw)
+    rows.append(("build (S=16, 1 px sample)", f"{t:.2f} s", f"{pairs / t / 1e6:.1f} M pairs/s",
+                 f"raw embreex {raw / 1e6:.1f} M rays/s -> {pairs / t / raw:.2f}x"))
+
+    # 2. memory: peak resident-set growth in a fresh process
+    results["memory"] = []
+    for px in (1, 4):
+        peak, a_bytes = peak_memory(size, grid, 16, px)
+        results["memory"].append(dict(pixel_samples=px, peak_increase_bytes=peak, A_bytes=a_bytes, ratio=peak / a_bytes))
+        rows.append((f"peak RSS growth (S=16, px={px})", f"{peak / 2**20:.0f} MiB", f"A = {a_bytes / 2**20:.0f} MiB",
+                     f"{peak / a_bytes:.2f}x A"))
+
+    # 3. accuracy vs time, against a reference converged in directions and footprint
+    subset = np.random.default_rng(3).random((size, size)) < 0.125
+    ref, t_ref = build(setup, grid, samples=16 if q else 32, pixel_samples=16, seed=1, mask=subset)
+    results["reference"] = dict(samples=16 if q else 32, pixel_samples=16, pixels=int(ref.A.shape[0]), seconds=t_ref)
+    results["scaling"], results["accuracy"] = [], []
+    for px, sample_counts in ((1, (2, 4, 8, 16, 32)), (4, (2, 4, 8, 16)), (9, (2, 4))):
+        for S in sample_counts:
+            T_s, t_s = build(setup, grid, samples=S, pixel_samples=px, seed=0)
+            err = float(np.median(column_errors(*common_rows(T_s, ref))))
+            results["accuracy"].append(dict(samples=S, pixel_samples=px, seconds=t_s, median_column_error=err))
+            rows.append((f"samples={S}, pixel_samples={px}", f"{t_s:.2f} s", f"median column err {100 * err:.2f}%", ""))
+    small = hj.scenes.object_on_plane("teapot", width=size // 2, height=size // 2)
+    coarse = hj.EnvGrid(grid.height // 2, grid.width // 2)
+    for label, s, g in (("pixels / 4", small, grid), ("grid / 4", setup, coarse)):
+        _, t_x = build(s, g, samples=16, pixel_samples=1)
+        results["scaling"].append(dict(change=label, seconds=t_x, ratio_to_full=t_x / t))
+        rows.append((f"{label} (S=16)", f"{t_x:.2f} s", f"{t_x / t:.2f}x the full build", ""))
+
+    # 4. defaults: Monte Carlo error of a rendered image under the procedural sky (with a sun)
+    img_size = 32 if q else 64
+    dsetup = hj.scenes.object_on_plane("teapot", width=img_size, height=img_size)
+    env = grid.downsample(hj.scenes.procedural_sky(128, 256))
+    Td, t_d = build(dsetup, grid)
+    Tr, _ = build(dsetup, grid, samples=32 if q else 128, pixel_samples=hj.transport.DEFAULT_PIXEL_SAMPLES, seed=7)
+    both = Td.mask & Tr.mask
+    a, b = np.asarray(hj.render(Td, env))[both], np.asarray(hj.render(Tr, env))[both]
+    mc = float(np.linalg.norm(a - b) / np.linalg.norm(b))
+    results["defaults"] = dict(samples=hj.transport.DEFAULT_SAMPLES, pixel_samples=hj.transport.DEFAULT_PIXEL_SAMPLES,
+                               render_relrmse_vs_high_sample=mc, image=img_size)
+    _, t_default = build(setup, grid)
+    results["defaults"]["seconds_full_size"] = t_default
+    rows.append((f"defaults S={hj.transport.DEFAULT_SAMPLES}, px={hj.transport.DEFAULT_PIXEL_SAMPLES}",
+                 f"{t_default:.2f} s", f"render MC error {100 * mc:.2f}%", "(includes footprint noise)"))
+
+    # 5. Mitsuba 3, the user's alternative, on the same scene
+    mit = None if args.no_mitsuba else mitsuba_columns(
+        setup, grid, T.mask, spps=(16, 64), ref_spp=256 if q else 1024, n_columns=4 if q else 24)
+    results["mitsuba"] = mit if mit is not None else "not installed (pip install mitsuba): skipped"
+    if mit and "per_spp" in mit:
+        for spp, m in mit["per_spp"].items():
+            rows.append((f"Mitsuba path, {spp} spp", f"{m['seconds_all_columns']:.1f} s",
+                         f"median column err {100 * m['median_column_error']:.2f}%", "(extrapolated to all columns)"))
+        target = mit["per_spp"][64]["median_column_error"]
+        ok = [r for r in results["accuracy"] if r["median_column_error"] <= target]
+        if ok:
+            best = min(ok, key=lambda r: r["seconds"])
+            speedup = mit["per_spp"][64]["seconds_all_columns"] / best["seconds"]
+            results["equal_accuracy"] = dict(mitsuba_64spp_error=target, hiddenjax_samples=best["samples"],
+                                             hiddenjax_pixel_samples=best["pixel_samples"],
+                                             hiddenjax_seconds=best["seconds"], speedup=speedup)
+            rows.append(("equal accuracy vs Mitsuba 64 spp", f"{best['seconds']:.2f} s",
+                         f"S={best['samples']}, px={best['pixel_samples']}",
+                         f"{speedup:.0f}x faster"))
+
+    width = [max(len(r[i]) for r in rows) for i in range(4)]
+    print("\n".join("  ".join(c.ljust(w) for c, w in zip(r, width)) for r in rows))
+    (args.out / "results.json").write_text(json.dumps(results, indent=2, default=float))
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for px, marker in ((1, "o-"), (4, "^-"), (9, "v-")):
+        acc = [r for r in results["accuracy"] if r["pixel_samples"] == px]
+        ax.loglog([r["seconds"] for r in acc], [100 * r["median_column_error"] for r in acc], marker,
+                  label=f"hiddenjax, pixel_samples={px}")
+        for r in acc:
+            ax.annotate(f"S={r['samples']}", (r["seconds"], 100 * r["median_column_error"]), fontsize=8)
+    if mit and "per_spp" in mit:
+        ms = mit["per_spp"]
+        ax.loglog([m["seconds_all_columns"] for m in ms.values()], [100 * m["median_column_error"] for m in ms.values()],
+                  "s-", label=f"Mitsuba 3 path ({mit['variant']})")
+    ax.set_xlabel("seconds for all columns")
+    ax.set_ylabel("median column error (%)")
+    ax.set_title(f"{size}x{size} px, {grid.height}x{grid.width} grid, {faces}-face teapot")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(args.out / "accuracy_vs_time.png", dpi=120)
+    return results
+
+
+if __name__ == "__main__":
+    main()
