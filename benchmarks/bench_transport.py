@@ -69,15 +69,18 @@ def raw_embree_rate(setup, rays: int, seed=0):
     return rays / elapsed
 
 
+# VmHWM (the peak resident set of this address space) rather than ru_maxrss, which Linux carries
+# over from the parent at fork and would hide the build's growth.
 _MEMORY_PROBE = """
-import json, resource, sys
+import json, re, sys
 import hiddenjax as hj
+hwm = lambda: int(re.search(r"VmHWM:\\s+(\\d+) kB", open("/proc/self/status").read()).group(1)) * 1024
 size, H, W, S, px = map(int, sys.argv[1:6])
 setup = hj.scenes.object_on_plane("teapot", width=size, height=size)
 hj.transport_matrix(setup.scene, setup.camera, hj.EnvGrid(4, 8), samples=1, pixel_samples=1, progress=False)
-base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+base = hwm()
 T = hj.transport_matrix(setup.scene, setup.camera, hj.EnvGrid(H, W), samples=S, pixel_samples=px, progress=False)
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+peak = hwm()
 print(json.dumps(dict(increase=peak - base, A=T.A.nbytes)))
 """
 
@@ -210,7 +213,7 @@ def main(argv=None):
                                              hiddenjax_seconds=best["seconds"], speedup=speedup)
             rows.append(("equal accuracy vs Mitsuba 64 spp", f"{best['seconds']:.2f} s",
                          f"S={best['samples']}, px={best['pixel_samples']}",
-                         f"{speedup:.0f}x faster"))
+                         f"{speedup:.1f}x faster"))
 
     width = [max(len(r[i]) for r in rows) for i in range(4)]
     print("\n".join("  ".join(c.ljust(w) for c, w in zip(r, width)) for r in rows))

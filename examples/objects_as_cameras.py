@@ -45,10 +45,10 @@ def main(argv=None):
     t_ref = time.perf_counter() - t0
 
     mask = T.mask
-    diff = np.where(mask[..., None], image - reference, 0.0)
+    diff = np.where(mask[..., None], image - reference, np.nan)  # NaN: outside the mask, drawn grey
     relrmse = float(np.linalg.norm(diff[mask]) / np.linalg.norm(reference[mask]))
     sun = int(np.argmax(envmap.mean(axis=2)))
-    column = np.asarray(T.rows_to_image(T.A[:, sun]))
+    column = np.where(mask, np.asarray(T.rows_to_image(T.A[:, sun])), np.nan)
 
     hj.io.write_exr(args.out / "image.exr", image)
     hj.io.write_exr(args.out / "reference.exr", reference)
@@ -59,7 +59,7 @@ def main(argv=None):
         [
             ("sky (full resolution)", sky),
             (f"env map {grid.height}x{grid.width}", envmap),
-            ("A x (transport matrix)", image, "radiance", white),
+            ("A x (transport matrix)", np.where(mask[..., None], image, np.nan), "radiance", white),
             ("reference renderer", reference, "radiance", white),
             ("A x - reference", diff.mean(axis=2), "signed"),
             (f"column of A: sun pixel {divmod(sun, grid.width)}", column, "map"),

@@ -80,3 +80,11 @@ def test_read_errors(tmp_path):
     (tmp_path / "junk.hdr").write_bytes(b"junk")
     with pytest.raises(ValueError, match="hdr"):
         hj.io.read_hdr(tmp_path / "junk.hdr")
+
+
+def test_nan_panels_are_drawn_grey():
+    img = np.ones((4, 4))
+    img[0, 0] = np.nan
+    for kind in ("radiance", "map", "signed"):
+        p = hj.io.panel(img, kind)
+        assert tuple(p[0, 0]) == (128, 128, 128) and tuple(p[1, 1]) != (128, 128, 128)

@@ -7,14 +7,22 @@ from ._images import colormap, tonemap, write_png
 
 
 def panel(image, kind: str = "radiance", white: float | None = None) -> np.ndarray:
-    """One panel as uint8 RGB: `kind` is 'radiance' (tone mapped), 'map' (inferno) or 'signed'."""
+    """One panel as uint8 RGB: `kind` is 'radiance' (tone mapped), 'map' (inferno) or 'signed'.
+
+    NaN marks "no data" (e.g. pixels outside a transport matrix's mask) and is drawn grey.
+    """
     a = np.asarray(image, dtype=np.float64)
+    missing = np.isnan(a) if a.ndim == 2 else np.any(np.isnan(a), axis=-1)
+    a = np.nan_to_num(a, nan=0.0)
     if kind == "radiance":
         rgb = tonemap(a, white=white)
-        return np.repeat(rgb[..., None], 3, -1) if rgb.ndim == 2 else rgb
-    if kind in ("map", "signed"):
-        return colormap(a, signed=kind == "signed", limit=white)
-    raise ValueError(f"panel kind must be 'radiance', 'map' or 'signed', got {kind!r}")
+        rgb = np.repeat(rgb[..., None], 3, -1) if rgb.ndim == 2 else rgb
+    elif kind in ("map", "signed"):
+        rgb = colormap(a, signed=kind == "signed", limit=white)
+    else:
+        raise ValueError(f"panel kind must be 'radiance', 'map' or 'signed', got {kind!r}")
+    rgb[missing] = 128
+    return rgb
 
 
 def contact_sheet(path, panels, height: int = 256, columns: int | None = None) -> np.ndarray:

@@ -43,8 +43,8 @@ def transport_matrix(
     occlusion is estimated with `samples` stratified directions per env pixel (see `_direct`).
 
     **Arguments:**
-    - `samples`: directions per env pixel for the visibility estimate (default 16: about 1%
-      Monte Carlo error of a rendered image; see the README's table).
+    - `samples`: directions per env pixel for the visibility estimate (default 16; with the
+      default `pixel_samples` a rendered image has 0.44% Monte Carlo error, README benchmarks).
     - `pixel_samples`: stratified footprint samples per image pixel (box filter, default 4).
     - `mask`: optional `(H, W)` bool; intersected with the pixels whose whole footprint sees an
       observed surface (all of a surface with `keep_occluder=True`).

@@ -33,6 +33,9 @@ class RayCaster:
         for surface in scene:
             TriangleMesh(self._embree, surface.triangles.astype(np.float32))
         self.offset = 2e-5 * scene.scale()
+        # embreex builds the BVH lazily on the first query, unguarded: do it now, before any
+        # thread can query concurrently (queries on a committed scene are thread-safe).
+        self._embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), query="OCCLUDED")
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Boolean `(n,)`: does the ray `origins + t directions, t > 0` hit anything?"""
