@@ -123,3 +123,15 @@ def test_public_stratified_directions():
     assert w.shape == (4, 8, 9, 3) and np.allclose(np.linalg.norm(w, axis=-1), 1)
     i, j = grid.direction_to_pixel(w)
     assert np.all(i == np.arange(4)[:, None, None]) and np.all(j == np.arange(8)[None, :, None])
+
+
+def test_cosine_directions_follow_the_cosine_law():
+    from hiddenjax.scene._sampling import cosine_directions
+
+    n = np.random.default_rng(4).normal(size=(3, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    w = cosine_directions(np.repeat(n, 20000, axis=0), np.random.default_rng(5)).reshape(3, 20000, 3)
+    cos = np.einsum("mc,msc->ms", n, w)
+    assert np.allclose(np.linalg.norm(w, axis=-1), 1) and np.all(cos >= 0)
+    # pdf cos/pi: E[cos] = 2/3 and E[cos^2] = 1/2
+    assert np.allclose(cos.mean(axis=1), 2 / 3, atol=0.01) and np.allclose((cos**2).mean(axis=1), 0.5, atol=0.01)

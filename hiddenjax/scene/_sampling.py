@@ -1,4 +1,4 @@
-"""Stratified samples of the unit square, shared by pixel footprints and env-grid cells."""
+"""Sampling primitives: stratified points of the unit square, cosine-weighted hemisphere directions."""
 
 import numpy as np
 
@@ -20,3 +20,15 @@ def stratified_square(rng: np.random.Generator, count: int, samples: int, dtype=
     offset = np.stack([row / k, col / m], axis=-1).astype(dtype)
     scale = np.array([1 / k, 1 / m], dtype=dtype)
     return offset + rng.random((count, samples, 2), dtype=dtype) * scale
+
+
+def cosine_directions(normals: np.ndarray, rng) -> np.ndarray:
+    """One cosine-distributed direction about each unit normal `(n, 3)` (Malley's method)."""
+    u = rng.random((len(normals), 2))
+    r, phi = np.sqrt(u[:, 0]), 2 * np.pi * u[:, 1]
+    local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - u[:, 0]))], -1)
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    t = np.cross(normals, helper)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    b = np.cross(normals, t)
+    return local[:, :1] * t + local[:, 1:2] * b + local[:, 2:] * normals

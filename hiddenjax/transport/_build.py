@@ -9,6 +9,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..scene import Camera, EnvGrid, Scene
+from ..scene._sampling import cosine_directions
 from ._direct import DirectLighting
 from ._embree import Hits, primary_hits
 from ._matrix import TransportMatrix
@@ -198,7 +199,7 @@ def _indirect(lighting: DirectLighting, pts: "_Points", bounces: int, paths: int
         owner = np.arange(len(pts.position))
         pos, nrm, throughput = pts.position, pts.normal, pts.albedo / paths
         for _ in range(bounces):
-            w = _cosine_directions(nrm, rng)
+            w = cosine_directions(nrm, rng)
             hits = caster.intersect(pos, w)
             rays += len(pos)
             alive = hits.surface >= 0
@@ -213,15 +214,3 @@ def _indirect(lighting: DirectLighting, pts: "_Points", bounces: int, paths: int
             np.add.at(out, owner, (throughput * albedo / np.pi)[:, None] * E)
             throughput = throughput * albedo
     return out, rays
-
-
-def _cosine_directions(normals: np.ndarray, rng) -> np.ndarray:
-    """One cosine-distributed direction about each unit normal `(n, 3)` (Malley's method)."""
-    u = rng.random((len(normals), 2))
-    r, phi = np.sqrt(u[:, 0]), 2 * np.pi * u[:, 1]
-    local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - u[:, 0]))], -1)
-    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
-    t = np.cross(normals, helper)
-    t /= np.linalg.norm(t, axis=1, keepdims=True)
-    b = np.cross(normals, t)
-    return local[:, :1] * t + local[:, 1:2] * b + local[:, 2:] * normals

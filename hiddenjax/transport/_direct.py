@@ -27,8 +27,6 @@ class DirectLighting:
     """Per-grid and per-scene constants for `rows`, built once per transport-matrix call."""
 
     def __init__(self, scene: Scene, grid: EnvGrid, samples: int):
-        if samples < 1:
-            raise ValueError(f"samples must be >= 1, got {samples}")
         self.caster = RayCaster(scene)
         self.grid = grid
         self.samples = int(samples)

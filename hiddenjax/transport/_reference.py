@@ -12,7 +12,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..scene import Camera, EnvGrid, Scene
-from ._build import _cosine_directions
+from ..scene._sampling import cosine_directions
 from ._embree import RayCaster, primary_hits
 
 
@@ -70,7 +70,7 @@ def reference_render(
             k = np.minimum(np.searchsorted(cdf, rng.random((m, samples)), side="right"), len(cdf) - 1)
             w = fine.sample_directions(k, rng.random((m, samples, 2)))
             # Every other sample is cosine-weighted instead (one-sample MIS, balance heuristic).
-            w[:, 1::2] = _cosine_directions(np.repeat(normal, samples // 2, axis=0), rng).reshape(m, -1, 3)
+            w[:, 1::2] = cosine_directions(np.repeat(normal, samples // 2, axis=0), rng).reshape(m, -1, 3)
             i, j = fine.direction_to_pixel(w)
             k = i * fine.width + j
             cos = np.einsum("mc,msc->ms", normal, w)
