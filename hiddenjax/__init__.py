@@ -4,11 +4,14 @@ Everything public is re-exported here; implementation modules are private.
 """
 
 from . import io as io
+from . import metrics as metrics
+from . import solvers as solvers
 from . import scene as scenes
 from .scene import Camera as Camera
 from .scene import EnvGrid as EnvGrid
 from .scene import Scene as Scene
 from .scene import Surface as Surface
+from .solvers import solve_illumination as solve_illumination
 from .transport import TransportMatrix as TransportMatrix
 from .transport import reference_render as reference_render
 from .transport import render as render

@@ -1,0 +1,10 @@
+"""Solvers for the illumination (and, later, albedo and scene parameters): pure JAX, jit and vmap."""
+
+from ._illumination import DEFAULT_RIDGE as DEFAULT_RIDGE
+from ._illumination import DEFAULT_SMOOTH as DEFAULT_SMOOTH
+from ._illumination import DampedNewton as DampedNewton
+from ._illumination import IlluminationSolution as IlluminationSolution
+from ._illumination import ProjectedNewton as ProjectedNewton
+from ._illumination import normal_matrix as normal_matrix
+from ._illumination import regularization_weights as regularization_weights
+from ._illumination import solve_illumination as solve_illumination

@@ -1,0 +1,213 @@
+"""Illumination from one photo: eq. 5.3 solved exactly (projected Newton) or by the thesis' eq. 5.7.
+
+`min_x ||A x - y||^2 + ls ||D x||^2 + lr ||x||^2  (x >= 0)` is the quadratic program
+`min_x x^T B x - 2 c^T x` with `B = A^T A + ls D^T D + lr I` (eq. 5.13) and `c = A^T y`.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from ..transport import TransportMatrix
+
+DEFAULT_SMOOTH = 1e-3
+DEFAULT_RIDGE = 1e-4
+
+SUCCESS, MAX_STEPS = 0, 1
+
+
+class ProjectedNewton(eqx.Module):
+    """Exact non-negative solve: projected Newton with an active set (Bertsekas, 1982).
+
+    Each step solves the normal equations restricted to the free set `{x > 0 or grad < 0}`
+    (a Cholesky factorization of the masked `B`) and takes the longest step along the projected
+    path that decreases the objective (Armijo backtracking). It stops when the KKT residual
+    `max |min(x, B x - c)|` falls below `rtol * max |c|`: then `x` is optimal to that tolerance.
+    """
+
+    rtol: float = 1e-6
+    max_steps: int = eqx.field(static=True, default=100)
+
+
+class DampedNewton(eqx.Module):
+    """The thesis' damped projected update (eq. 5.7): `x <- clip(x + gamma (x* - x), 0, inf)`.
+
+    `x*` is the unconstrained minimizer; with a fixed `A` the iteration converges to the clipped
+    unconstrained solution, which is not the constrained optimum (its KKT residual says how far).
+    """
+
+    gamma: float = 0.9
+    max_steps: int = eqx.field(static=True, default=20)
+
+
+class IlluminationSolution(eqx.Module):
+    """Result of `solve_illumination`.
+
+    **Fields:** `env (h, w[, C])` the environment map; `objective ([C])` the value of eq. 5.3;
+    `kkt_residual ([C])` `max |min(x, grad)|` relative to `max |A^T y|` (0 at the optimum; for
+    `nonneg=False` the gradient norm); `steps ([C])` iterations; `result ([C])` 0 for success,
+    1 when `max_steps` ran out; `smooth`, `ridge` the absolute weights used.
+    """
+
+    env: Float[Array, "h w *C"]
+    objective: Float[Array, "*C"]
+    kkt_residual: Float[Array, "*C"]
+    steps: Int[Array, "*C"]
+    result: Int[Array, "*C"]
+    smooth: Float[Array, ""]
+    ridge: Float[Array, ""]
+
+
+def regularization_weights(T: TransportMatrix, smooth, ridge, absolute: bool = False):
+    """Absolute `(ls, lr)` of eq. 5.3: relative weights times `mean(diag(A^T A))` (DESIGN.md section 3)."""
+    if absolute:
+        return jnp.asarray(smooth, T.A.dtype), jnp.asarray(ridge, T.A.dtype)
+    scale = jnp.mean(jnp.sum(T.A * T.A, axis=0))
+    return smooth * scale, ridge * scale
+
+
+def normal_matrix(T: TransportMatrix, smooth, ridge) -> Float[Array, "N N"]:
+    """`B = A^T A + smooth D^T D + ridge I` (eq. 5.13) with absolute weights, `(N, N)`."""
+    N = T.grid.size
+    eye = jnp.eye(N, dtype=T.A.dtype)
+    laplacian = jax.vmap(T.grid.difference_gram)(eye)  # rows of D^T D (symmetric)
+    return T.A.T @ T.A + smooth * laplacian + ridge * eye
+
+
+def solve_illumination(
+    T: TransportMatrix,
+    image,
+    smooth=DEFAULT_SMOOTH,
+    ridge=DEFAULT_RIDGE,
+    nonneg: bool = True,
+    *,
+    solver: ProjectedNewton | DampedNewton | None = None,
+    absolute: bool = False,
+    throw: bool = True,
+) -> IlluminationSolution:
+    """Environment map from one photo by eq. 5.3 (RGB: each channel independently, under `vmap`).
+
+    **Arguments:**
+    - `T`: the scene's `TransportMatrix`; `image (H, W)` or `(H, W, C)` linear radiance (only the
+      pixels in `T.mask` are used).
+    - `smooth`, `ridge`: weights of `||D x||^2` and `||x||^2`, relative to `mean(diag(A^T A))`
+      unless `absolute=True` (DESIGN.md section 3).
+    - `nonneg`: `x >= 0` (default); `False` gives the signed map for temporally subtracted frames.
+    - `solver`: `ProjectedNewton()` (exact, default) or `DampedNewton()` (thesis eq. 5.7).
+    - `throw`: raise if the solver did not converge; `False` reports it in `result` instead.
+
+    **Returns:** an `IlluminationSolution`. Pure JAX: works under `jax.jit` and `jax.vmap`.
+    """
+    solver = ProjectedNewton() if solver is None else solver
+    _check_weights(smooth, ridge)
+    y = _check_image(T, image)
+    ls, lr = regularization_weights(T, smooth, ridge, absolute)
+    B = normal_matrix(T, ls, lr)
+    c = T.A.T @ y.astype(T.A.dtype)
+    if c.ndim == 1:
+        x, steps, result = _solve(B, c, solver, nonneg)
+    else:
+        x, steps, result = jax.vmap(lambda ck: _solve(B, ck, solver, nonneg), in_axes=1, out_axes=-1)(c)
+    objective = jnp.einsum("n...,n...->...", x, B @ x) - 2 * jnp.einsum("n...,n...->...", c, x) + jnp.sum(y * y, 0)
+    kkt = _kkt_residual(B, c, x, nonneg)
+    if throw:
+        x = eqx.error_if(x, jnp.any(result != SUCCESS), "solve_illumination: the solver ran out of max_steps "
+                         "before the KKT residual met rtol; raise max_steps, or pass throw=False")
+    env = x.reshape(T.grid.shape + x.shape[1:])
+    return IlluminationSolution(env, objective, kkt, steps, result, ls, lr)
+
+
+def _kkt_residual(B, c, x, nonneg):
+    grad = jnp.einsum("mn,n...->m...", B, x) - c
+    violation = jnp.minimum(x, grad) if nonneg else grad
+    return jnp.max(jnp.abs(violation), axis=0) / jnp.maximum(jnp.max(jnp.abs(c), axis=0), 1e-30)
+
+
+def _solve(B, c, solver, nonneg):
+    """One channel: `x (N,)`, steps, result code."""
+    if not nonneg:
+        x = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(B), c)
+        return x, jnp.array(1), jnp.array(SUCCESS)
+    if isinstance(solver, DampedNewton):
+        return _damped(B, c, solver)
+    if isinstance(solver, ProjectedNewton):
+        return _projected_newton(B, c, solver)
+    raise ValueError(f"solver must be ProjectedNewton or DampedNewton, got {type(solver).__name__}")
+
+
+def _damped(B, c, solver: DampedNewton):
+    x_star = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(B), c)
+
+    def step(x, _):
+        return jnp.maximum(x + solver.gamma * (x_star - x), 0.0), None
+
+    x, _ = jax.lax.scan(step, jnp.ones_like(c), None, length=solver.max_steps)  # thesis: start at ones
+    return x, jnp.array(solver.max_steps), jnp.array(SUCCESS)
+
+
+def _projected_newton(B, c, solver: ProjectedNewton):
+    tol = solver.rtol * jnp.maximum(jnp.max(jnp.abs(c)), 1e-30)
+    f = lambda x: x @ (B @ x) - 2 * c @ x
+
+    def restricted_minimizer(free):
+        # Minimize over the face {x_i = 0 for i not free}: identity rows/columns for fixed entries.
+        Bf = jnp.where(free[:, None] & free[None, :], B, 0.0) + jnp.diag(jnp.where(free, 0.0, 1.0))
+        return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(Bf), jnp.where(free, c, 0.0))
+
+    def residual(x):
+        return jnp.max(jnp.abs(jnp.minimum(x, B @ x - c)))
+
+    def cond(state):
+        x, k, done = state
+        return (~done) & (k < solver.max_steps)
+
+    def body(state):
+        x, k, _ = state
+        grad = B @ x - c
+        free = (x > 0) | (grad < 0)
+        z = restricted_minimizer(free)
+        fx = f(x)
+
+        # Projected backtracking: the largest t in {1, 1/2, ...} with f(P(x + t (z - x))) < f(x).
+        def ls_cond(s):
+            t, xt, ft, i = s
+            return (ft >= fx) & (i < 40)
+
+        def ls_body(s):
+            t, _, _, i = s
+            t = t * 0.5
+            xt = jnp.maximum(x + t * (z - x), 0.0)
+            return t, xt, f(xt), i + 1
+
+        x1 = jnp.maximum(z, 0.0)
+        _, xt, ft, _ = jax.lax.while_loop(ls_cond, ls_body, (1.0, x1, f(x1), 0))
+        # In degenerate cases the Newton path may not descend; a projected gradient step of
+        # length 1/L (L >= the largest eigenvalue of B) always does unless x is optimal.
+        x_new = jnp.where(ft < fx, xt, jnp.maximum(x - grad / lipschitz, 0.0))
+        return x_new, k + 1, residual(x_new) <= tol
+
+    lipschitz = jnp.max(jnp.sum(jnp.abs(B), axis=1))  # Gershgorin bound on the largest eigenvalue
+    x0 = jnp.maximum(restricted_minimizer(jnp.ones_like(c, dtype=bool)), 0.0)
+    x, steps, _ = jax.lax.while_loop(cond, body, (x0, jnp.array(0), residual(x0) <= tol))
+    result = jnp.where(residual(x) <= tol, SUCCESS, MAX_STEPS)
+    return x, steps, result
+
+
+def _check_weights(smooth, ridge):
+    for name, value in (("smooth", smooth), ("ridge", ridge)):
+        if isinstance(value, jax.core.Tracer):
+            continue
+        if not np.all(np.isfinite(value)) or np.any(np.asarray(value) < 0):
+            raise ValueError(f"{name} must be a finite, non-negative weight, got {value}")
+
+
+def _check_image(T: TransportMatrix, image):
+    image = jnp.asarray(image)
+    if image.ndim not in (2, 3):
+        raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
+    y = T.image_to_rows(image)
+    if not isinstance(y, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(y))):
+        raise ValueError("image has non-finite values (NaN or inf) inside the transport matrix's mask")
+    return y

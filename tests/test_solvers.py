@@ -1,0 +1,152 @@
+"""The illumination solver against its optimality conditions, scipy, and the physics of a scene."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.optimize
+
+import hiddenjax as hj
+from hiddenjax.solvers import DampedNewton, ProjectedNewton
+from hiddenjax.transport import TransportMatrix
+
+
+def random_problem(seed, P=60, grid=hj.EnvGrid(4, 8), dtype=jnp.float64):
+    rng = np.random.default_rng(seed)
+    A = np.abs(rng.normal(size=(P, grid.size))) * (rng.random((P, grid.size)) < 0.5)
+    T = TransportMatrix(A=jnp.asarray(A, dtype), albedo=jnp.ones(P, dtype), pixels=jnp.arange(P),
+                        grid=grid, image_shape=(6, 10))
+    image = (rng.normal(size=P) + 0.5).reshape(6, 10)  # signed data: many constraints are active
+    return T, A, image
+
+
+def scipy_nnls(A, y, grid, ls, lr):
+    D = grid.difference_matrix(dense=True)
+    M = np.vstack([A, np.sqrt(ls) * D, np.sqrt(lr) * np.eye(grid.size)])
+    b = np.concatenate([y, np.zeros(D.shape[0] + grid.size)])
+    return scipy.optimize.nnls(M, b, maxiter=20 * grid.size)[0], M, b
+
+
+@pytest.fixture
+def x64():
+    with jax.enable_x64(True):
+        yield
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_exact_solve_matches_scipy_nnls_and_kkt(x64, seed):
+    T, A, image = random_problem(seed)
+    sol = hj.solve_illumination(T, image, smooth=0.01, ridge=0.001)
+    x = np.asarray(sol.env).ravel()
+    ref, M, b = scipy_nnls(A, image.ravel(), T.grid, float(sol.smooth), float(sol.ridge))
+    assert np.linalg.norm(x - ref) <= 1e-5 * np.linalg.norm(ref)
+    assert np.sum(x == 0) > 3  # the constraint is active somewhere: this is not least squares
+    # KKT: x >= 0, gradient >= 0, complementarity
+    grad = M.T @ (M @ x - b)
+    scale = np.abs(M.T @ b).max()
+    assert np.all(x >= 0) and np.all(grad >= -1e-9 * scale) and np.max(np.abs(x * grad)) < 1e-9 * scale * x.max()
+    assert float(sol.kkt_residual) < 1e-10 and int(sol.result) == 0
+    # the reported objective is eq. 5.3 at x
+    assert float(sol.objective) == pytest.approx(np.sum((M @ x - b) ** 2), rel=1e-9)
+
+
+def test_unconstrained_solve_is_ridge_least_squares(x64):
+    T, A, image = random_problem(7)
+    sol = hj.solve_illumination(T, image, smooth=0.01, ridge=0.001, nonneg=False)
+    _, M, b = scipy_nnls(A, image.ravel(), T.grid, float(sol.smooth), float(sol.ridge))
+    ref = np.linalg.lstsq(M, b, rcond=None)[0]
+    assert np.allclose(np.asarray(sol.env).ravel(), ref, rtol=1e-8, atol=1e-10)
+    assert np.any(ref < 0)  # signed
+
+
+def test_relative_weights_scale_with_the_matrix(x64):
+    T, _, image = random_problem(3)
+    a = hj.solve_illumination(T, image, smooth=0.01, ridge=0.001)
+    T10 = TransportMatrix(A=10 * T.A, albedo=T.albedo, pixels=T.pixels, grid=T.grid, image_shape=T.image_shape)
+    b = hj.solve_illumination(T10, 10 * image, smooth=0.01, ridge=0.001)  # exposure x10, same picture
+    assert np.allclose(a.env, b.env, rtol=1e-8)
+    c = hj.solve_illumination(T, image, smooth=float(a.smooth), ridge=float(a.ridge), absolute=True)
+    assert np.allclose(a.env, c.env, rtol=1e-10)
+
+
+def test_jit_vmap_and_rgb_agree_with_single_solves(x64):
+    T, _, image = random_problem(11)
+    rgb = np.stack([image, 2 * image + 0.3, -image], -1)
+    sol = hj.solve_illumination(T, rgb)
+    for k in range(3):
+        single = hj.solve_illumination(T, rgb[..., k])
+        assert np.allclose(sol.env[..., k], single.env, rtol=1e-8, atol=1e-12)
+    jitted = jax.jit(lambda T, y: hj.solve_illumination(T, y))(T, rgb)
+    assert np.allclose(jitted.env, sol.env, rtol=1e-8, atol=1e-12)
+    stack = jnp.stack([rgb[..., 0], rgb[..., 1]])
+    batched = jax.vmap(lambda y: hj.solve_illumination(T, y, throw=False))(stack)
+    assert np.allclose(batched.env[1], sol.env[..., 1], rtol=1e-8, atol=1e-12)
+
+
+def test_damped_update_is_the_clipped_unconstrained_solution(x64):
+    T, _, image = random_problem(5)
+    damped = hj.solve_illumination(T, image, solver=DampedNewton(gamma=0.9, max_steps=200))
+    free = hj.solve_illumination(T, image, nonneg=False)
+    assert np.allclose(damped.env, np.maximum(free.env, 0), atol=1e-10)
+    exact = hj.solve_illumination(T, image)
+    assert float(damped.kkt_residual) > 1e3 * float(exact.kkt_residual)  # not the constrained optimum
+    assert float(damped.objective) > float(exact.objective)
+
+
+def test_max_steps_reported_or_raised(x64):
+    T, _, image = random_problem(2)
+    sol = hj.solve_illumination(T, image, solver=ProjectedNewton(max_steps=0), throw=False)
+    assert int(sol.result) == 1
+    with pytest.raises(Exception, match="max_steps"):
+        hj.solve_illumination(T, image, solver=ProjectedNewton(max_steps=0))
+
+
+def test_bad_input(x64):
+    T, _, image = random_problem(1)
+    with pytest.raises(ValueError, match="does not match"):
+        hj.solve_illumination(T, np.ones((5, 5)))
+    bad = image.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        hj.solve_illumination(T, bad)
+    with pytest.raises(ValueError, match="non-negative"):
+        hj.solve_illumination(T, image, ridge=-1.0)
+
+
+@pytest.fixture(scope="module")
+def teapot():
+    setup = hj.scenes.object_on_plane("teapot", width=48, height=48)
+    grid = hj.EnvGrid(16, 32)
+    T = hj.transport_matrix(setup.scene, setup.camera, grid, samples=16, pixel_samples=2, progress=False)
+    return setup, T
+
+
+def test_recovers_the_sun_and_beats_the_unconstrained_solve(teapot):
+    setup, T = teapot
+    sky = hj.scenes.procedural_sky(128, 256)
+    truth = T.grid.downsample(sky)
+    # the photo comes from the independent renderer, full-resolution sky, more samples than A
+    photo = hj.reference_render(setup.scene, setup.camera, sky, samples=512, pixel_samples=4, seed=3)
+    est = np.asarray(hj.solve_illumination(T, photo).env)
+    found = np.unravel_index(np.argmax(est.mean(-1)), T.grid.shape)
+    true = np.unravel_index(np.argmax(truth.mean(-1)), T.grid.shape)
+    assert max(abs(found[0] - true[0]), abs(found[1] - true[1])) <= 1
+    signed = np.asarray(hj.solve_illumination(T, photo, nonneg=False).env)
+    e, u = hj.metrics.env_errors(est, truth), hj.metrics.env_errors(signed, truth)
+    assert e["relrmse"] < u["relrmse"] and e["ssim"] > u["ssim"] and e["ssim_tm"] > u["ssim_tm"], (e, u)
+
+
+def test_signed_map_of_a_subtracted_pair(teapot):
+    setup, T = teapot
+    grid = T.grid
+    before = hj.scenes.procedural_sky(128, 256, sun=(0.7, 1.0), sun_radiance=300.0, sources=0)
+    after = hj.scenes.procedural_sky(128, 256, sun=(0.7, 4.0), sun_radiance=300.0, sources=0)
+    render = lambda pano: hj.reference_render(setup.scene, setup.camera, pano, samples=256, pixel_samples=2, seed=1)
+    diff = render(after) - render(before)  # a source moved: temporally subtracted frames
+    est = np.asarray(hj.solve_illumination(T, diff, nonneg=False).env).mean(-1)
+    pos = np.unravel_index(np.argmax(est), grid.shape)
+    neg = np.unravel_index(np.argmin(est), grid.shape)
+    expect = lambda theta, phi: grid.direction_to_pixel(hj.scenes.direction(theta, phi))
+    for got, (i, j) in ((pos, expect(0.7, 4.0)), (neg, expect(0.7, 1.0))):
+        assert abs(got[0] - i) <= 1 and min(abs(got[1] - j), grid.width - abs(got[1] - j)) <= 1
+    assert est.max() > 0 > est.min()
