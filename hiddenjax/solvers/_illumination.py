@@ -12,7 +12,10 @@ from jaxtyping import Array, Float, Int
 
 from ..transport import TransportMatrix
 
-DEFAULT_SMOOTH = 1e-3
+# Tuned on the teapot fixture (64x64 photo from the reference renderer) for tone-mapped SSIM:
+# within 0.03 of the best at both 16x32 and 32x64 grids. The linear metrics, dominated by the
+# sun, prefer less smoothing (1e-3 gives linear SSIM 0.97 but a speckled sky).
+DEFAULT_SMOOTH = 0.03
 DEFAULT_RIDGE = 1e-4
 
 SUCCESS, MAX_STEPS = 0, 1
@@ -25,9 +28,11 @@ class ProjectedNewton(eqx.Module):
     (a Cholesky factorization of the masked `B`) and takes the longest step along the projected
     path that decreases the objective (Armijo backtracking). It stops when the KKT residual
     `max |min(x, B x - c)|` falls below `rtol * max |c|`: then `x` is optimal to that tolerance.
+    `rtol=None` picks the round-off floor of the dtype: 1e-4 in float32 (a 2048-term product
+    already carries ~1e-5 relative error), 1e-10 in float64.
     """
 
-    rtol: float = 1e-6
+    rtol: float | None = None
     max_steps: int = eqx.field(static=True, default=100)
 
 
@@ -148,7 +153,8 @@ def _damped(B, c, solver: DampedNewton):
 
 
 def _projected_newton(B, c, solver: ProjectedNewton):
-    tol = solver.rtol * jnp.maximum(jnp.max(jnp.abs(c)), 1e-30)
+    rtol = solver.rtol if solver.rtol is not None else (1e-10 if c.dtype == jnp.float64 else 1e-4)
+    tol = rtol * jnp.maximum(jnp.max(jnp.abs(c)), 1e-30)
     f = lambda x: x @ (B @ x) - 2 * c @ x
 
     def restricted_minimizer(free):
