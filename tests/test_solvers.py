@@ -150,3 +150,19 @@ def test_signed_map_of_a_subtracted_pair(teapot):
     for got, (i, j) in ((pos, expect(0.7, 4.0)), (neg, expect(0.7, 1.0))):
         assert abs(got[0] - i) <= 1 and min(abs(got[1] - j), grid.width - abs(got[1] - j)) <= 1
     assert est.max() > 0 > est.min()
+
+
+def test_operator_reuses_the_factorization_for_many_images(x64):
+    T, A, image = random_problem(9)
+    op = hj.solvers.IlluminationOperator.build(T, smooth=0.01, ridge=0.001)
+    rng = np.random.default_rng(1)
+    images = jnp.asarray(image[None] + rng.normal(0, 0.3, size=(5,) + image.shape))
+    batched = jax.jit(jax.vmap(lambda y: op.solve(y)))(images)
+    for k in range(5):
+        single = hj.solve_illumination(T, images[k], smooth=0.01, ridge=0.001)
+        assert np.allclose(batched.env[k], single.env, rtol=1e-8, atol=1e-12)
+    # G (eq. 5.9) applied to a new image is the unconstrained estimate
+    G = op.inverse()
+    assert G.shape == (T.grid.size, A.shape[0])
+    free = hj.solve_illumination(T, images[2], smooth=0.01, ridge=0.001, nonneg=False)
+    assert np.allclose(G @ T.image_to_rows(images[2]), np.asarray(free.env).ravel(), rtol=1e-8, atol=1e-12)

@@ -3,6 +3,7 @@
 from ._illumination import DEFAULT_RIDGE as DEFAULT_RIDGE
 from ._illumination import DEFAULT_SMOOTH as DEFAULT_SMOOTH
 from ._illumination import DampedNewton as DampedNewton
+from ._illumination import IlluminationOperator as IlluminationOperator
 from ._illumination import IlluminationSolution as IlluminationSolution
 from ._illumination import ProjectedNewton as ProjectedNewton
 from ._illumination import normal_matrix as normal_matrix

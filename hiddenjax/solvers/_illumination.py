@@ -81,6 +81,50 @@ def normal_matrix(T: TransportMatrix, smooth, ridge) -> Float[Array, "N N"]:
     return T.A.T @ T.A + smooth * laplacian + ridge * eye
 
 
+class IlluminationOperator(eqx.Module):
+    """The normal equations of eq. 5.3 for one `TransportMatrix` and one set of weights, formed once.
+
+    `B = A^T A + ls D^T D + lr I` (eq. 5.13) and its Cholesky factor are reused by every image:
+    `op.solve(image)` for one photo (vmap it over a stack: a video, several lightings) and
+    `op.inverse()` for `G = B^-1 A^T`, the regularized inverse of eq. 5.9, so that the
+    unconstrained estimate of a new image is the matrix product `G y`.
+    """
+
+    T: TransportMatrix
+    B: Float[Array, "N N"]
+    factor: Float[Array, "N N"]  # lower Cholesky factor of B
+    smooth: Float[Array, ""]  # absolute weights
+    ridge: Float[Array, ""]
+
+    @classmethod
+    def build(cls, T: TransportMatrix, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, absolute: bool = False):
+        _check_weights(smooth, ridge)
+        ls, lr = regularization_weights(T, smooth, ridge, absolute)
+        B = normal_matrix(T, ls, lr)
+        return cls(T, B, jnp.linalg.cholesky(B), jnp.asarray(ls), jnp.asarray(lr))
+
+    def inverse(self) -> Float[Array, "N P"]:
+        """`G = (A^T A + R)^-1 A^T` (eq. 5.9 with the smoothness prior); `G @ y` is the signed estimate."""
+        return jax.scipy.linalg.cho_solve((self.factor, True), self.T.A.T)
+
+    def solve(self, image, nonneg: bool = True, solver=None, throw: bool = True) -> IlluminationSolution:
+        """Solve eq. 5.3 for `image (H, W[, C])` with the stored factorization (see `solve_illumination`)."""
+        solver = ProjectedNewton() if solver is None else solver
+        y = _check_image(self.T, image)
+        c = self.T.A.T @ y.astype(self.T.A.dtype)
+        one = lambda ck: _solve(self.B, self.factor, ck, solver, nonneg)
+        x, steps, result = one(c) if c.ndim == 1 else jax.vmap(one, in_axes=1, out_axes=-1)(c)
+        B = self.B
+        objective = jnp.einsum("n...,n...->...", x, jnp.einsum("mn,n...->m...", B, x))
+        objective = objective - 2 * jnp.einsum("n...,n...->...", c, x) + jnp.sum(y * y, 0)
+        kkt = _kkt_residual(B, c, x, nonneg)
+        if throw:
+            x = eqx.error_if(x, jnp.any(result != SUCCESS), "solve_illumination: the solver ran out of max_steps "
+                             "before the KKT residual met rtol; raise max_steps, or pass throw=False")
+        env = x.reshape(self.T.grid.shape + x.shape[1:])
+        return IlluminationSolution(env, objective, kkt, steps, result, self.smooth, self.ridge)
+
+
 def solve_illumination(
     T: TransportMatrix,
     image,
@@ -103,25 +147,11 @@ def solve_illumination(
     - `solver`: `ProjectedNewton()` (exact, default) or `DampedNewton()` (thesis eq. 5.7).
     - `throw`: raise if the solver did not converge; `False` reports it in `result` instead.
 
-    **Returns:** an `IlluminationSolution`. Pure JAX: works under `jax.jit` and `jax.vmap`.
+    **Returns:** an `IlluminationSolution`. Pure JAX: works under `jax.jit` and `jax.vmap`. For
+    many images with one `T`, build an `IlluminationOperator` once and reuse it.
     """
-    solver = ProjectedNewton() if solver is None else solver
-    _check_weights(smooth, ridge)
-    y = _check_image(T, image)
-    ls, lr = regularization_weights(T, smooth, ridge, absolute)
-    B = normal_matrix(T, ls, lr)
-    c = T.A.T @ y.astype(T.A.dtype)
-    if c.ndim == 1:
-        x, steps, result = _solve(B, c, solver, nonneg)
-    else:
-        x, steps, result = jax.vmap(lambda ck: _solve(B, ck, solver, nonneg), in_axes=1, out_axes=-1)(c)
-    objective = jnp.einsum("n...,n...->...", x, B @ x) - 2 * jnp.einsum("n...,n...->...", c, x) + jnp.sum(y * y, 0)
-    kkt = _kkt_residual(B, c, x, nonneg)
-    if throw:
-        x = eqx.error_if(x, jnp.any(result != SUCCESS), "solve_illumination: the solver ran out of max_steps "
-                         "before the KKT residual met rtol; raise max_steps, or pass throw=False")
-    env = x.reshape(T.grid.shape + x.shape[1:])
-    return IlluminationSolution(env, objective, kkt, steps, result, ls, lr)
+    op = IlluminationOperator.build(T, smooth, ridge, absolute)
+    return op.solve(image, nonneg=nonneg, solver=solver, throw=throw)
 
 
 def _kkt_residual(B, c, x, nonneg):
@@ -130,29 +160,27 @@ def _kkt_residual(B, c, x, nonneg):
     return jnp.max(jnp.abs(violation), axis=0) / jnp.maximum(jnp.max(jnp.abs(c), axis=0), 1e-30)
 
 
-def _solve(B, c, solver, nonneg):
-    """One channel: `x (N,)`, steps, result code."""
+def _solve(B, factor, c, solver, nonneg):
+    """One channel: `x (N,)`, steps, result code. `factor` is B's lower Cholesky factor."""
+    unconstrained = jax.scipy.linalg.cho_solve((factor, True), c)
     if not nonneg:
-        x = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(B), c)
-        return x, jnp.array(1), jnp.array(SUCCESS)
+        return unconstrained, jnp.array(1), jnp.array(SUCCESS)
     if isinstance(solver, DampedNewton):
-        return _damped(B, c, solver)
+        return _damped(unconstrained, solver)
     if isinstance(solver, ProjectedNewton):
-        return _projected_newton(B, c, solver)
+        return _projected_newton(B, c, unconstrained, solver)
     raise ValueError(f"solver must be ProjectedNewton or DampedNewton, got {type(solver).__name__}")
 
 
-def _damped(B, c, solver: DampedNewton):
-    x_star = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(B), c)
-
+def _damped(x_star, solver: DampedNewton):
     def step(x, _):
         return jnp.maximum(x + solver.gamma * (x_star - x), 0.0), None
 
-    x, _ = jax.lax.scan(step, jnp.ones_like(c), None, length=solver.max_steps)  # thesis: start at ones
+    x, _ = jax.lax.scan(step, jnp.ones_like(x_star), None, length=solver.max_steps)  # thesis: start at ones
     return x, jnp.array(solver.max_steps), jnp.array(SUCCESS)
 
 
-def _projected_newton(B, c, solver: ProjectedNewton):
+def _projected_newton(B, c, unconstrained, solver: ProjectedNewton):
     rtol = solver.rtol if solver.rtol is not None else (1e-10 if c.dtype == jnp.float64 else 1e-4)
     tol = rtol * jnp.maximum(jnp.max(jnp.abs(c)), 1e-30)
     f = lambda x: x @ (B @ x) - 2 * c @ x
@@ -195,7 +223,7 @@ def _projected_newton(B, c, solver: ProjectedNewton):
         return x_new, k + 1, residual(x_new) <= tol
 
     lipschitz = jnp.max(jnp.sum(jnp.abs(B), axis=1))  # Gershgorin bound on the largest eigenvalue
-    x0 = jnp.maximum(restricted_minimizer(jnp.ones_like(c, dtype=bool)), 0.0)
+    x0 = jnp.maximum(unconstrained, 0.0)  # the all-free restricted minimizer, from the stored factor
     x, steps, _ = jax.lax.while_loop(cond, body, (x0, jnp.array(0), residual(x0) <= tol))
     result = jnp.where(residual(x) <= tol, SUCCESS, MAX_STEPS)
     return x, steps, result
