@@ -166,3 +166,49 @@ def test_operator_reuses_the_factorization_for_many_images(x64):
     assert G.shape == (T.grid.size, A.shape[0])
     free = hj.solve_illumination(T, images[2], smooth=0.01, ridge=0.001, nonneg=False)
     assert np.allclose(G @ T.image_to_rows(images[2]), np.asarray(free.env).ravel(), rtol=1e-8, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def textured_plane():
+    """A checker-textured plane with the teapot, three suns; the model A' assumes a white plane."""
+    setup = hj.scenes.object_on_plane("teapot", width=48, height=48)
+    plane, teapot = setup.scene[0].mesh, setup.scene[1]
+    i, j = np.indices((256, 256)) // 4
+    textured = hj.Scene([hj.Surface(plane, np.where((i + j) % 2 == 0, 0.35, 0.9)), teapot])
+    grid = hj.EnvGrid(8, 16)
+    T_white = hj.transport_matrix(hj.Scene([hj.Surface(plane, 1.0), teapot]), setup.camera, grid,
+                                  samples=16, pixel_samples=2, progress=False)
+    T_true = hj.transport_matrix(textured, setup.camera, grid, samples=1, pixel_samples=2, progress=False)
+    skies = [hj.scenes.procedural_sky(64, 128, sun=(0.8, phi), sun_radiance=300.0, seed=k)
+             for k, phi in enumerate([0.5, 2.5, 4.5])]
+    photos = np.stack([hj.reference_render(textured, setup.camera, sky.mean(-1), samples=256, pixel_samples=2,
+                                           seed=5) for sky in skies])
+    truths = [grid.downsample(sky).mean(-1) for sky in skies]
+    return T_white, np.asarray(T_true.rows_to_image(T_true.albedo)), photos, truths
+
+
+def test_joint_albedo_beats_assuming_white(textured_plane):
+    T, albedo_true, photos, truths = textured_plane
+    sol = hj.solvers.solve_albedo_illumination(T, photos, max_steps=20)
+    m = T.mask & (albedo_true > 0)
+    rho = np.asarray(sol.albedo)
+    rmse = np.sqrt(np.mean((rho[m] - albedo_true[m]) ** 2))
+    white = np.sqrt(np.mean((1 - albedo_true[m]) ** 2))
+    assert rmse < 0.5 * white, (rmse, white)  # measured 0.116 vs 0.438
+    history = np.asarray(sol.objective_history)
+    assert np.all(np.diff(history) <= 1e-6 * history[0])  # each alternating step lowers the objective
+    for k in range(3):
+        joint = hj.metrics.env_errors(np.asarray(sol.env[k]), truths[k])
+        base = hj.metrics.env_errors(np.asarray(hj.solve_illumination(T, photos[k]).env), truths[k])
+        assert joint["ssim"] > base["ssim"] and joint["ssim_tm"] > base["ssim_tm"], (k, joint, base)
+
+
+def test_joint_albedo_takes_colour_channels_as_lightings(textured_plane):
+    T, _, photos, _ = textured_plane
+    rgb = np.stack([photos[0], photos[1], photos[2]], -1)[None]  # one image, three "lightings"
+    sol = hj.solvers.solve_albedo_illumination(T, rgb, max_steps=3)
+    assert sol.env.shape == (1, 8, 16, 3) and sol.albedo.shape == T.image_shape
+    grey = hj.solvers.solve_albedo_illumination(T, photos, max_steps=3)
+    assert np.allclose(sol.env[0, ..., 1], grey.env[1], rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="stack"):
+        hj.solvers.solve_albedo_illumination(T, photos[0])

@@ -9,3 +9,5 @@ from ._illumination import ProjectedNewton as ProjectedNewton
 from ._illumination import normal_matrix as normal_matrix
 from ._illumination import regularization_weights as regularization_weights
 from ._illumination import solve_illumination as solve_illumination
+from ._albedo import AlbedoIlluminationSolution as AlbedoIlluminationSolution
+from ._albedo import solve_albedo_illumination as solve_albedo_illumination
