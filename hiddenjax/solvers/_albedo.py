@@ -9,6 +9,8 @@ alternate damped steps (eq. 5.7, `gamma = 0.9`) towards
 - `rho*`: `(lp G^T G + sum_l diag(A' x_l)^2) rho = sum_l y_l * A' x_l` (eq. 5.6) with
   `G = (A'^T A' + lr I)^-1 A'^T`, solved matrix-free by conjugate gradients (`G^T G` is `P x P`),
   clipped to `[rho_min, 1]`; the damped step is kept only where it lowers the objective.
+
+Several viewpoints share the env maps; each view has its own albedo `rho_v` and its own `G_v`.
 """
 
 import equinox as eqx
@@ -25,7 +27,8 @@ from ._illumination import (
     _check_image,
     _check_weights,
     _solve,
-    normal_matrix,
+    prior_matrix,
+    views,
 )
 
 DEFAULT_ALBEDO_WEIGHT = 1e-3
@@ -34,20 +37,21 @@ DEFAULT_ALBEDO_WEIGHT = 1e-3
 class AlbedoIlluminationSolution(eqx.Module):
     """Result of `solve_albedo_illumination`.
 
-    **Fields:** `env (L, h, w[, C])` one map per image; `albedo (H, W)` the per-pixel albedo
-    scale (0 outside the mask); `objective_history (steps,)` the joint objective after each
-    iteration (eq. 5.3 summed over images plus the `lp ||G rho||^2` term); `steps` iterations
-    taken before the relative change fell below `tol`.
+    **Fields:** `env (L, h, w[, C])` one map per lighting; `albedo` the per-pixel albedo scale as
+    an `(H, W)` image (0 outside the mask), a tuple of them for several views;
+    `objective_history (max_steps,)` the joint objective after each iteration (eq. 5.3 summed
+    over images and views, plus `lp ||G_v rho_v||^2`); `steps` iterations taken before the
+    relative change fell below `tol`.
     """
 
     env: Float[Array, "L h w *C"]
-    albedo: Float[Array, "H W"]
+    albedo: Float[Array, "H W"] | tuple
     objective_history: Float[Array, " steps"]
     steps: Int[Array, ""]
 
 
 def solve_albedo_illumination(
-    T: TransportMatrix,
+    T,
     images,
     smooth=DEFAULT_SMOOTH,
     ridge=DEFAULT_RIDGE,
@@ -63,7 +67,8 @@ def solve_albedo_illumination(
 
     **Arguments:**
     - `T`: transport matrix; its `unit_albedo` `A'` is the model (build it with white surfaces,
-      or with your best albedo guess: `rho` then scales it).
+      or with your best albedo guess: `rho` then scales it). Several viewpoints: a sequence of
+      matrices on one grid, and `images` a sequence of stacks, one per view.
     - `images`: `(L, H, W)` or `(L, H, W, C)`; colour channels are further lighting conditions
       of the same grey albedo.
     - `smooth`, `ridge`, `albedo_weight`: weights of eq. 5.3 and of `||G rho||^2` (eq. 5.4),
@@ -73,61 +78,78 @@ def solve_albedo_illumination(
 
     **Returns:** an `AlbedoIlluminationSolution`; starts, as the thesis does, from ones.
     """
+    Ts = views(T)
+    stacks = (images,) if len(Ts) == 1 else tuple(images)
+    if len(stacks) != len(Ts):
+        raise ValueError(f"{len(Ts)} views need {len(Ts)} image stacks, got {len(stacks)}")
     _check_weights(smooth, ridge)
     _check_weights(albedo_weight, 0.0)
-    images = jnp.asarray(images)
-    if images.ndim not in (3, 4):
-        raise ValueError(f"images must be a stack (L, H, W) or (L, H, W, C), got shape {images.shape}")
-    Y = jax.vmap(lambda im: _check_image(T, im))(images) if isinstance(images, jax.core.Tracer) else jnp.stack(
-        [_check_image(T, im) for im in images])
-    channels = Y.shape[2:]
-    Y = jnp.moveaxis(Y, 1, -1).reshape(-1, Y.shape[1])  # (L*C, P): each channel is a lighting
-    A1 = T.unit_albedo
-    scale = 1.0 if absolute else jnp.mean(jnp.sum(A1 * A1, axis=0))
+    Ys, shapes = [], set()
+    for t, stack in zip(Ts, stacks):
+        stack = jnp.asarray(stack)
+        if stack.ndim not in (3, 4):
+            raise ValueError(f"images must be a stack (L, H, W) or (L, H, W, C), got shape {stack.shape}")
+        Y = jnp.stack([_check_image(t, im) for im in stack])  # (L, P[, C])
+        shapes.add((stack.shape[0],) + stack.shape[3:])
+        Ys.append(jnp.moveaxis(Y, 1, -1).reshape(-1, Y.shape[1]))  # (L*C, P): each channel a lighting
+    if len(shapes) != 1:
+        raise ValueError(f"every view needs the same number of images and channels, got {sorted(shapes)}")
+    (lights,) = shapes
+    A1s = [t.unit_albedo for t in Ts]
+    dtype, N = A1s[0].dtype, Ts[0].grid.size
+    scale = 1.0 if absolute else jnp.mean(sum(jnp.sum(a * a, axis=0) for a in A1s))
     ls, lr, lp = smooth * scale, ridge * scale, albedo_weight * scale
-    N, P = T.grid.size, A1.shape[0]
-    R = normal_matrix(T, ls, lr) - T.A.T @ T.A  # ls D^T D + lr I
-    ridge_factor = jnp.linalg.cholesky(A1.T @ A1 + lr * jnp.eye(N, dtype=A1.dtype))
-    G = lambda rho: jax.scipy.linalg.cho_solve((ridge_factor, True), A1.T @ rho)  # (P,) -> (N,)
-    Gt = lambda v: A1 @ jax.scipy.linalg.cho_solve((ridge_factor, True), v)  # (N,) -> (P,)
+    R = prior_matrix(Ts[0].grid, ls, lr, dtype)
+    factors = [jnp.linalg.cholesky(a.T @ a + lr * jnp.eye(N, dtype=dtype)) for a in A1s]
+    G = lambda v, rho: jax.scipy.linalg.cho_solve((factors[v], True), A1s[v].T @ rho)  # (P_v,) -> (N,)
+    Gt = lambda v, x: A1s[v] @ jax.scipy.linalg.cho_solve((factors[v], True), x)  # (N,) -> (P_v,)
 
-    def objective(rho, X):
-        pred = (A1 @ X.T).T * rho[None, :]
-        data = jnp.sum((pred - Y) ** 2)
-        prior = jnp.einsum("ln,nm,lm->", X, R, X)
-        g = G(rho)
-        return data + prior + lp * g @ g
+    def view_objective(v, rho, X):
+        residual = (A1s[v] @ X.T).T * rho[None, :] - Ys[v]
+        g = G(v, rho)
+        return jnp.sum(residual**2) + lp * g @ g
 
-    def x_star(rho):
-        Ar = A1 * rho[:, None]
-        B = Ar.T @ Ar + R  # eq. 5.5
+    def objective(rhos, X):
+        return sum(view_objective(v, r, X) for v, r in enumerate(rhos)) + jnp.einsum("ln,nm,lm->", X, R, X)
+
+    def x_star(rhos):
+        Ars = [a * r[:, None] for a, r in zip(A1s, rhos)]
+        B = sum(a.T @ a for a in Ars) + R  # eq. 5.5, summed over views
         factor = jnp.linalg.cholesky(B)
-        one = lambda c: _solve(B, factor, c, ProjectedNewton(), True)[0]
-        return jax.vmap(one)(Y @ Ar)  # (L, N)
+        C = sum(y @ a for y, a in zip(Ys, Ars))  # (L, N)
+        return jax.vmap(lambda c: _solve(B, factor, c, ProjectedNewton(), True)[0])(C)
 
-    def rho_star(X, rho0):
-        AX = A1 @ X.T  # (P, L)
+    def rho_star(v, X, rho0):
+        AX = A1s[v] @ X.T  # (P, L)
         d = jnp.sum(AX * AX, axis=1)
-        op = lx.FunctionLinearOperator(lambda r: lp * Gt(G(r)) + d * r, jax.ShapeDtypeStruct((P,), A1.dtype),
-                                       lx.positive_semidefinite_tag)
-        rhs = jnp.sum(Y.T * AX, axis=1)  # eq. 5.6
+        op = lx.FunctionLinearOperator(lambda r: lp * Gt(v, G(v, r)) + d * r,
+                                       jax.ShapeDtypeStruct(rho0.shape, dtype), lx.positive_semidefinite_tag)
+        rhs = jnp.sum(Ys[v].T * AX, axis=1)  # eq. 5.6
         solver = lx.CG(rtol=1e-6, atol=1e-9, max_steps=500)
         return lx.linear_solve(op, rhs, solver, options={"y0": rho0}, throw=False).value
 
     def body(state, _):
-        rho, X, prev, done, steps = state
-        X_new = X + gamma * (x_star(rho) - X)  # feasible: a convex combination of x >= 0 points
-        rho_try = jnp.clip(rho + gamma * (rho_star(X_new, rho) - rho), rho_min, 1.0)
-        f_keep, f_try = objective(rho, X_new), objective(rho_try, X_new)
-        rho_new, f = jnp.where(f_try < f_keep, rho_try, rho), jnp.minimum(f_try, f_keep)
-        rho_new, X_new, f = (jnp.where(done, a, b) for a, b in ((rho, rho_new), (X, X_new), (prev, f)))
+        rhos, X, prev, done, steps = state
+        X_new = X + gamma * (x_star(rhos) - X)  # feasible: a convex combination of x >= 0 points
+        new_rhos = []
+        for v, rho in enumerate(rhos):  # given X the views decouple: accept each view's step alone
+            rho_try = jnp.clip(rho + gamma * (rho_star(v, X_new, rho) - rho), rho_min, 1.0)
+            better = view_objective(v, rho_try, X_new) < view_objective(v, rho, X_new)
+            new_rhos.append(jnp.where(better, rho_try, rho))
+        f = objective(new_rhos, X_new)
+        keep = lambda old, new: jnp.where(done, old, new)
+        new_rhos = [keep(a, b) for a, b in zip(rhos, new_rhos)]
+        X_new, f = keep(X, X_new), keep(prev, f)
         converged = done | (jnp.abs(prev - f) <= tol * jnp.abs(prev))
-        return (rho_new, X_new, f, converged, steps + (~done)), f
+        return (new_rhos, X_new, f, converged, steps + (~done)), f
 
-    rho0 = jnp.ones(P, A1.dtype)
-    X0 = jnp.ones((Y.shape[0], N), A1.dtype)
-    init = (rho0, X0, objective(rho0, X0), jnp.array(False), jnp.array(0))
-    (rho, X, _, _, steps), history = jax.lax.scan(body, init, None, length=max_steps)
-    env = X.reshape((images.shape[0],) + channels + T.grid.shape)
-    env = jnp.moveaxis(env, tuple(range(1, 1 + len(channels))), tuple(range(-len(channels), 0))) if channels else env
-    return AlbedoIlluminationSolution(env, T.rows_to_image(rho), history, steps)
+    rhos0 = [jnp.ones(a.shape[0], dtype) for a in A1s]
+    X0 = jnp.ones((Ys[0].shape[0], N), dtype)
+    init = (rhos0, X0, objective(rhos0, X0), jnp.array(False), jnp.array(0))
+    (rhos, X, _, _, steps), history = jax.lax.scan(body, init, None, length=max_steps)
+    channels = lights[1:]
+    env = X.reshape(lights + Ts[0].grid.shape)
+    if channels:
+        env = jnp.moveaxis(env, 1, -1)
+    albedo = tuple(t.rows_to_image(r) for t, r in zip(Ts, rhos))
+    return AlbedoIlluminationSolution(env, albedo[0] if len(Ts) == 1 else albedo, history, steps)

@@ -65,63 +65,94 @@ class IlluminationSolution(eqx.Module):
     ridge: Float[Array, ""]
 
 
-def regularization_weights(T: TransportMatrix, smooth, ridge, absolute: bool = False):
-    """Absolute `(ls, lr)` of eq. 5.3: relative weights times `mean(diag(A^T A))` (DESIGN.md section 3)."""
+def views(T) -> tuple[TransportMatrix, ...]:
+    """One `TransportMatrix` or a sequence of them (several viewpoints of one env grid) as a tuple."""
+    Ts = (T,) if isinstance(T, TransportMatrix) else tuple(T)
+    if not Ts or not all(isinstance(t, TransportMatrix) for t in Ts):
+        raise ValueError("expected a TransportMatrix or a non-empty sequence of them")
+    if any(t.grid != Ts[0].grid for t in Ts):
+        raise ValueError(f"all views must share one env grid; got {[t.grid.shape for t in Ts]}")
+    return Ts
+
+
+def regularization_weights(T, smooth, ridge, absolute: bool = False):
+    """Absolute `(ls, lr)` of eq. 5.3: relative weights times `mean(diag(A^T A))` (DESIGN.md section 3).
+
+    With several views, `A^T A` is the sum over views.
+    """
+    Ts = views(T)
+    dtype = Ts[0].A.dtype
     if absolute:
-        return jnp.asarray(smooth, T.A.dtype), jnp.asarray(ridge, T.A.dtype)
-    scale = jnp.mean(jnp.sum(T.A * T.A, axis=0))
+        return jnp.asarray(smooth, dtype), jnp.asarray(ridge, dtype)
+    scale = jnp.mean(sum(jnp.sum(t.A * t.A, axis=0) for t in Ts))
     return smooth * scale, ridge * scale
 
 
-def normal_matrix(T: TransportMatrix, smooth, ridge) -> Float[Array, "N N"]:
-    """`B = A^T A + smooth D^T D + ridge I` (eq. 5.13) with absolute weights, `(N, N)`."""
-    N = T.grid.size
-    eye = jnp.eye(N, dtype=T.A.dtype)
-    laplacian = jax.vmap(T.grid.difference_gram)(eye)  # rows of D^T D (symmetric)
-    return T.A.T @ T.A + smooth * laplacian + ridge * eye
+def prior_matrix(grid, smooth, ridge, dtype=jnp.float32) -> Float[Array, "N N"]:
+    """`R = smooth D^T D + ridge I` with absolute weights, `(N, N)`."""
+    eye = jnp.eye(grid.size, dtype=dtype)
+    return smooth * jax.vmap(grid.difference_gram)(eye) + ridge * eye  # rows of D^T D (symmetric)
+
+
+def normal_matrix(T, smooth, ridge) -> Float[Array, "N N"]:
+    """`B = sum over views of A^T A + smooth D^T D + ridge I` (eq. 5.13), absolute weights, `(N, N)`."""
+    Ts = views(T)
+    return sum(t.A.T @ t.A for t in Ts) + prior_matrix(Ts[0].grid, smooth, ridge, Ts[0].A.dtype)
 
 
 class IlluminationOperator(eqx.Module):
-    """The normal equations of eq. 5.3 for one `TransportMatrix` and one set of weights, formed once.
+    """The normal equations of eq. 5.3 for one scene (one or several views) and weights, formed once.
 
-    `B = A^T A + ls D^T D + lr I` (eq. 5.13) and its Cholesky factor are reused by every image:
-    `op.solve(image)` for one photo (vmap it over a stack: a video, several lightings) and
+    `B = sum_v A_v^T A_v + ls D^T D + lr I` (eq. 5.13) and its Cholesky factor are reused by every
+    image: `op.solve(image)` for one photo (vmap it over a stack: a video, several lightings) and
     `op.inverse()` for `G = B^-1 A^T`, the regularized inverse of eq. 5.9, so that the
-    unconstrained estimate of a new image is the matrix product `G y`.
+    unconstrained estimate of a new image is the matrix product `G y`. With several views, one
+    env map explains all of them (`solve` then takes one image per view).
     """
 
-    T: TransportMatrix
+    views: tuple[TransportMatrix, ...]
     B: Float[Array, "N N"]
     factor: Float[Array, "N N"]  # lower Cholesky factor of B
     smooth: Float[Array, ""]  # absolute weights
     ridge: Float[Array, ""]
 
     @classmethod
-    def build(cls, T: TransportMatrix, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, absolute: bool = False):
+    def build(cls, T, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, absolute: bool = False):
+        """From a `TransportMatrix` or a sequence of them (several viewpoints)."""
+        Ts = views(T)
         _check_weights(smooth, ridge)
-        ls, lr = regularization_weights(T, smooth, ridge, absolute)
-        B = normal_matrix(T, ls, lr)
-        return cls(T, B, jnp.linalg.cholesky(B), jnp.asarray(ls), jnp.asarray(lr))
+        ls, lr = regularization_weights(Ts, smooth, ridge, absolute)
+        B = normal_matrix(Ts, ls, lr)
+        return cls(Ts, B, jnp.linalg.cholesky(B), jnp.asarray(ls), jnp.asarray(lr))
 
     def inverse(self) -> Float[Array, "N P"]:
-        """`G = (A^T A + R)^-1 A^T` (eq. 5.9 with the smoothness prior); `G @ y` is the signed estimate."""
-        return jax.scipy.linalg.cho_solve((self.factor, True), self.T.A.T)
+        """`G = (A^T A + R)^-1 A^T` (eq. 5.9 with the smoothness prior); `G @ y` is the signed estimate.
+
+        With several views the columns follow the views' observed pixels in order.
+        """
+        At = jnp.concatenate([t.A.T for t in self.views], axis=1)
+        return jax.scipy.linalg.cho_solve((self.factor, True), At)
 
     def solve(self, image, nonneg: bool = True, solver=None, throw: bool = True) -> IlluminationSolution:
-        """Solve eq. 5.3 for `image (H, W[, C])` with the stored factorization (see `solve_illumination`)."""
+        """Solve eq. 5.3 for `image (H, W[, C])` (a sequence of them, one per view, for several views)."""
         solver = ProjectedNewton() if solver is None else solver
-        y = _check_image(self.T, image)
-        c = self.T.A.T @ y.astype(self.T.A.dtype)
+        images = (image,) if len(self.views) == 1 else tuple(image)
+        if len(images) != len(self.views):
+            raise ValueError(f"{len(self.views)} views need {len(self.views)} images, got {len(images)}")
+        ys = [_check_image(t, im).astype(t.A.dtype) for t, im in zip(self.views, images)]
+        if len({y.shape[1:] for y in ys}) != 1:
+            raise ValueError("all views' images must have the same number of channels")
+        c = sum(t.A.T @ y for t, y in zip(self.views, ys))
         one = lambda ck: _solve(self.B, self.factor, ck, solver, nonneg)
         x, steps, result = one(c) if c.ndim == 1 else jax.vmap(one, in_axes=1, out_axes=-1)(c)
         B = self.B
         objective = jnp.einsum("n...,n...->...", x, jnp.einsum("mn,n...->m...", B, x))
-        objective = objective - 2 * jnp.einsum("n...,n...->...", c, x) + jnp.sum(y * y, 0)
+        objective = objective - 2 * jnp.einsum("n...,n...->...", c, x) + sum(jnp.sum(y * y, 0) for y in ys)
         kkt = _kkt_residual(B, c, x, nonneg)
         if throw:
             x = eqx.error_if(x, jnp.any(result != SUCCESS), "solve_illumination: the solver ran out of max_steps "
                              "before the KKT residual met rtol; raise max_steps, or pass throw=False")
-        env = x.reshape(self.T.grid.shape + x.shape[1:])
+        env = x.reshape(self.views[0].grid.shape + x.shape[1:])
         return IlluminationSolution(env, objective, kkt, steps, result, self.smooth, self.ridge)
 
 
@@ -140,7 +171,8 @@ def solve_illumination(
 
     **Arguments:**
     - `T`: the scene's `TransportMatrix`; `image (H, W)` or `(H, W, C)` linear radiance (only the
-      pixels in `T.mask` are used).
+      pixels in `T.mask` are used). Several viewpoints: a sequence of matrices on one env grid and
+      a sequence of images, one per view; one env map explains them all.
     - `smooth`, `ridge`: weights of `||D x||^2` and `||x||^2`, relative to `mean(diag(A^T A))`
       unless `absolute=True` (DESIGN.md section 3).
     - `nonneg`: `x >= 0` (default); `False` gives the signed map for temporally subtracted frames.
