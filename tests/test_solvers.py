@@ -243,3 +243,18 @@ def test_joint_albedo_takes_colour_channels_as_lightings(textured_plane):
     assert np.allclose(sol.env[0, ..., 1], grey.env[1], rtol=1e-4, atol=1e-6)
     with pytest.raises(ValueError, match="stack"):
         hj.solvers.solve_albedo_illumination(T, photos[0])
+
+
+def test_adam_baseline_descends_towards_the_exact_optimum(x64):
+    T, _, image = random_problem(4)
+    exact = hj.solve_illumination(T, image, smooth=0.01, ridge=0.001)
+    short = hj.solvers.solve_illumination_adam(T, image, smooth=0.01, ridge=0.001, steps=20)
+    long = hj.solvers.solve_illumination_adam(T, image, smooth=0.01, ridge=0.001, steps=3000)
+    f = float(exact.objective)
+    history = np.asarray(long.objective_history)
+    assert np.all(np.asarray(long.env) >= 0)
+    assert float(short.objective_history[-1]) > history[-1] >= f * (1 - 1e-9)  # never below the optimum
+    assert history[-1] < f * 1.01  # converges to within 1% of the optimum
+    assert float(short.kkt_residual) > float(exact.kkt_residual)
+    rgb = hj.solvers.solve_illumination_adam(T, np.stack([image, image], -1), smooth=0.01, ridge=0.001, steps=20)
+    assert np.allclose(rgb.env[..., 1], short.env, rtol=1e-10)

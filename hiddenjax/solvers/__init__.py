@@ -12,3 +12,5 @@ from ._illumination import regularization_weights as regularization_weights
 from ._illumination import solve_illumination as solve_illumination
 from ._albedo import AlbedoIlluminationSolution as AlbedoIlluminationSolution
 from ._albedo import solve_albedo_illumination as solve_albedo_illumination
+from ._adam import AdamSolution as AdamSolution
+from ._adam import solve_illumination_adam as solve_illumination_adam
