@@ -258,3 +258,35 @@ def test_adam_baseline_descends_towards_the_exact_optimum(x64):
     assert float(short.kkt_residual) > float(exact.kkt_residual)
     rgb = hj.solvers.solve_illumination_adam(T, np.stack([image, image], -1), smooth=0.01, ridge=0.001, steps=20)
     assert np.allclose(rgb.env[..., 1], short.env, rtol=1e-10)
+
+
+def test_choose_weights_closed_forms_match_direct_solves(x64):
+    T, A, image = random_problem(6)
+    out = hj.solvers.choose_weights(T, image, smooth=0.01, ridge=0.001, scales=[0.1, 1.0, 10.0])
+    y = image.ravel()
+    for k, scale in enumerate([0.1, 1.0, 10.0]):
+        sol = hj.solve_illumination(T, image, smooth=0.01 * scale, ridge=0.001 * scale, nonneg=False)
+        x = np.asarray(sol.env).ravel()
+        R0 = np.asarray(hj.solvers.prior_matrix(T.grid, float(sol.smooth) / scale, float(sol.ridge) / scale,
+                                                jnp.float64))
+        assert out["residual"][k] == pytest.approx(np.sum((A @ x - y) ** 2), rel=1e-6)
+        assert out["seminorm"][k] == pytest.approx(x @ R0 @ x, rel=1e-6)
+
+
+@pytest.mark.parametrize("method", ["gcv", "lcurve"])
+def test_chosen_weights_beat_the_extremes(x64, method):
+    rng = np.random.default_rng(8)
+    grid = hj.EnvGrid(6, 12)
+    A = np.abs(rng.normal(size=(200, grid.size)))
+    T = TransportMatrix(A=jnp.asarray(A), albedo=jnp.ones(200), pixels=jnp.arange(200), grid=grid,
+                        image_shape=(10, 20))
+    truth = np.exp(-((np.arange(grid.size) % 12 - 6.0) ** 2) / 8)  # smooth
+    y = A @ truth
+    y = y + rng.normal(0, 0.05 * np.std(y), size=y.shape)
+    out = hj.solvers.choose_weights(T, y.reshape(10, 20), method=method)
+    err = lambda s, r: np.linalg.norm(np.asarray(hj.solve_illumination(T, y.reshape(10, 20), smooth=s, ridge=r,
+                                                                       nonneg=False).env).ravel() - truth)
+    chosen = err(out["smooth"], out["ridge"])
+    assert 1e-4 < out["scale"] < 1e4
+    assert chosen < err(out["smooth"] / out["scale"] * 1e-4, out["ridge"] / out["scale"] * 1e-4)
+    assert chosen < err(out["smooth"] / out["scale"] * 1e4, out["ridge"] / out["scale"] * 1e4)

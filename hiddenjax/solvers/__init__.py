@@ -14,3 +14,5 @@ from ._albedo import AlbedoIlluminationSolution as AlbedoIlluminationSolution
 from ._albedo import solve_albedo_illumination as solve_albedo_illumination
 from ._adam import AdamSolution as AdamSolution
 from ._adam import solve_illumination_adam as solve_illumination_adam
+from ._adam import AdamProblem as AdamProblem
+from ._weights import choose_weights as choose_weights

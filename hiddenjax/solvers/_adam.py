@@ -34,6 +34,41 @@ class AdamSolution(eqx.Module):
     steps: Int[Array, ""]
 
 
+class AdamProblem(eqx.Module):
+    """Adam on eq. 5.3 for one channel `y (P,)`, as a resumable stepper: `init()`, `step(carry)`, `env(carry)`."""
+
+    A: Float[Array, "P N"]
+    R: Float[Array, "N N"]
+    y: Float[Array, " P"]
+    x0: Float[Array, ""]
+    learning_rate: float = eqx.field(static=True)
+
+    @classmethod
+    def build(cls, T: TransportMatrix, y, smooth, ridge, learning_rate: float = 0.05, absolute: bool = False):
+        ls, lr = regularization_weights(T, smooth, ridge, absolute)
+        a1 = jnp.sum(T.A, axis=1)  # A @ 1
+        x0 = jnp.maximum(a1 @ y / (a1 @ a1), 1e-12)
+        return cls(T.A, prior_matrix(T.grid, ls, lr, T.A.dtype), y, x0, learning_rate)
+
+    def objective(self, x):
+        r = self.A @ x - self.y
+        return r @ r + x @ (self.R @ x)
+
+    def x(self, z):
+        return self.x0 * jax.nn.softplus(z)
+
+    def init(self):
+        z0 = jnp.full(self.A.shape[1], jnp.log(jnp.expm1(1.0)), self.A.dtype)  # x = x0 everywhere
+        return z0, optax.adam(self.learning_rate).init(z0)
+
+    def step(self, carry):
+        """One Adam step: `(carry, objective before the step)`."""
+        z, state = carry
+        value, grad = jax.value_and_grad(lambda z: self.objective(self.x(z)))(z)
+        updates, state = optax.adam(self.learning_rate).update(grad, state)
+        return (optax.apply_updates(z, updates), state), value
+
+
 def solve_illumination_adam(
     T: TransportMatrix,
     image,
@@ -52,36 +87,15 @@ def solve_illumination_adam(
     """
     _check_weights(smooth, ridge)
     y = _check_image(T, image).astype(T.A.dtype)
-    ls, lr = regularization_weights(T, smooth, ridge, absolute)
-    R = prior_matrix(T.grid, ls, lr, T.A.dtype)
-    A = T.A
-
-    def objective(x, yk):
-        r = A @ x - yk
-        return r @ r + x @ (R @ x)
 
     def one(yk):
-        ones = jnp.ones(A.shape[1], A.dtype)
-        a1 = A @ ones
-        x0 = jnp.maximum(a1 @ yk / (a1 @ a1), 1e-12)
-        z0 = jnp.full_like(ones, jnp.log(jnp.expm1(1.0)))  # softplus(z0) = 1
-        optimizer = optax.adam(learning_rate)
-        loss = lambda z: objective(x0 * jax.nn.softplus(z), yk)
+        problem = AdamProblem.build(T, yk, smooth, ridge, learning_rate, absolute)
+        carry, history = jax.lax.scan(lambda c, _: problem.step(c), problem.init(), None, length=steps)
+        x = problem.x(carry[0])
+        return x, jnp.concatenate([history[1:], problem.objective(x)[None]])
 
-        def step(carry, _):
-            z, state = carry
-            value, grad = jax.value_and_grad(loss)(z)
-            updates, state = optimizer.update(grad, state)
-            return (optax.apply_updates(z, updates), state), value
-
-        (z, _), history = jax.lax.scan(step, (z0, optimizer.init(z0)), None, length=steps)
-        x = x0 * jax.nn.softplus(z)
-        return x, jnp.concatenate([history[1:], loss(z)[None]])
-
-    if y.ndim == 1:
-        x, history = one(y)
-    else:
-        x, history = jax.vmap(one, in_axes=1, out_axes=-1)(y)
-    B = A.T @ A + R
-    kkt = _kkt_residual(B, A.T @ y, x, True)
+    x, history = one(y) if y.ndim == 1 else jax.vmap(one, in_axes=1, out_axes=-1)(y)
+    ls, lr = regularization_weights(T, smooth, ridge, absolute)
+    B = T.A.T @ T.A + prior_matrix(T.grid, ls, lr, T.A.dtype)
+    kkt = _kkt_residual(B, T.A.T @ y, x, True)
     return AdamSolution(x.reshape(T.grid.shape + x.shape[1:]), history, kkt, jnp.array(steps))
