@@ -23,6 +23,7 @@ import numpy as np  # noqa: E402
 import scipy.optimize  # noqa: E402
 
 import hiddenjax as hj  # noqa: E402
+from _report import Table, finish_plot  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 
 
 def timed(fn, *args):
@@ -47,14 +48,7 @@ def main(argv=None):
     photo = hj.reference_render(setup.scene, setup.camera, sky.mean(-1), samples=256, pixel_samples=1, seed=2)
     P, N = T.A.shape
     results = dict(config=dict(pixels=P, directions=N, dtype="float32", quick=q))
-    rows = []
-
-    class Rows(list):
-        def append(self, row):  # print each figure as soon as it is measured
-            super().append(row)
-            print("  ".join(row), flush=True)
-
-    rows = Rows()
+    rows = Table()
 
     # 1. one exact non-negative solve, forming A^T A included (compiled once beforehand)
     solve = jax.jit(lambda T, y: hj.solve_illumination(T, y))
@@ -133,20 +127,15 @@ def main(argv=None):
     rows.append((f"scipy lsq_linear (trf, exact, {ref.nit} it.)", f"{t_scipy:.1f} s", f"objective {f(ref.x):.4g} vs ours {f(x):.4g}",
                  f"{t_scipy / t_exact:.0f}x our time"))
 
-    width = [max(len(r[i]) for r in rows) for i in range(4)]
-    print("\n" + "\n".join("  ".join(c.ljust(w) for c, w in zip(r, width)) for r in rows))
+    rows.print_all()
     (args.out / "results.json").write_text(json.dumps(results, indent=2, default=float))
 
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.semilogx([c["seconds"] for c in curve], [c["ssim"] for c in curve], "o-", ms=3, label="Adam (optax)")
     ax.axhline(e_exact["ssim"], color="k", ls="--", label=f"exact solve ({t_exact:.2f} s)")
     ax.axvline(t_exact, color="k", ls=":")
-    ax.set_xlabel("seconds")
-    ax.set_ylabel("SSIM of the env map (upper hemisphere)")
-    ax.set_title(f"{P} pixels x {N} directions, float32, 2 cores")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(args.out / "adam_vs_exact.png", dpi=120)
+    finish_plot(fig, ax, args.out / "adam_vs_exact.png", "seconds", "SSIM of the env map (upper hemisphere)",
+                f"{P} pixels x {N} directions, float32, 2 cores", grid=False)
     return results
 
 

@@ -24,6 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import hiddenjax as hj  # noqa: E402
+from _report import Table, finish_plot  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 from hiddenjax.transport._embree import RayCaster, primary_hits  # noqa: E402
 
 
@@ -141,7 +142,7 @@ def main(argv=None):
     setup = hj.scenes.object_on_plane("teapot", width=size, height=size)
     faces = len(setup.scene[1].triangles)
     results = dict(config=dict(image=size, grid=list(grid.shape), occluder_faces=faces, quick=q))
-    rows = []
+    rows = Table()
 
     build(setup, hj.EnvGrid(4, 8), samples=1, pixel_samples=1)  # warm-up (JAX, Embree), not timed
     # 1. throughput against raw Embree, same number of (pixel, direction-sample) pairs
@@ -215,8 +216,7 @@ def main(argv=None):
                          f"S={best['samples']}, px={best['pixel_samples']}",
                          f"{speedup:.1f}x faster"))
 
-    width = [max(len(r[i]) for r in rows) for i in range(4)]
-    print("\n".join("  ".join(c.ljust(w) for c, w in zip(r, width)) for r in rows))
+    rows.print_all()
     (args.out / "results.json").write_text(json.dumps(results, indent=2, default=float))
 
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -230,13 +230,8 @@ def main(argv=None):
         ms = mit["per_spp"]
         ax.loglog([m["seconds_all_columns"] for m in ms.values()], [100 * m["median_column_error"] for m in ms.values()],
                   "s-", label=f"Mitsuba 3 path ({mit['variant']})")
-    ax.set_xlabel("seconds for all columns")
-    ax.set_ylabel("median column error (%)")
-    ax.set_title(f"{size}x{size} px, {grid.height}x{grid.width} grid, {faces}-face teapot")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(args.out / "accuracy_vs_time.png", dpi=120)
+    finish_plot(fig, ax, args.out / "accuracy_vs_time.png", "seconds for all columns", "median column error (%)",
+                f"{size}x{size} px, {grid.height}x{grid.width} grid, {faces}-face teapot")
     return results
 
 

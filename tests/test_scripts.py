@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = sorted((ROOT / "examples").glob("*.py")) + sorted((ROOT / "benchmarks").glob("*.py"))
+SCRIPTS = [p for folder in ("examples", "benchmarks") for p in sorted((ROOT / folder).glob("*.py"))
+           if not p.name.startswith("_")]  # _report.py is a shared module, not a script
 
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: f"{p.parent.name}/{p.name}")
