@@ -63,6 +63,11 @@ def main(argv=None):
     op = hj.solvers.IlluminationOperator.build(T)
     rng = np.random.default_rng(0)
     batch = jnp.asarray(photo[None] * (1 + 0.05 * rng.standard_normal((64,) + photo.shape)), jnp.float32)
+    single = jax.jit(lambda y: op.solve(y))
+    single(photo * 0.9)  # compile
+    _, t_single = timed(single, photo)
+    results["exact_with_factor"] = dict(seconds=t_single)
+    rows.append(("exact solve, B already factorized", f"{t_single:.2f} s", "", ""))
     many = jax.jit(jax.vmap(lambda y: op.solve(y, throw=False)))
     many(batch)  # compile
     _, t_batch = timed(many, batch)
@@ -99,7 +104,8 @@ def main(argv=None):
     results["adam"] = dict(curve=curve, seconds_to_exact_ssim=reached, budget_seconds=budget)
     if reached is not None:
         rows.append(("Adam to the exact solver's SSIM", f"{reached:.1f} s", f"{steps} steps",
-                     f"exact is {reached / t_exact:.0f}x faster (target >= 50x)"))
+                     f"exact is {reached / t_exact:.0f}x faster ({reached / t_single:.0f}x once B is factorized;"
+                     " target >= 50x)"))
     else:
         last = curve[-1]
         rows.append(("Adam within its time budget", f"{elapsed:.1f} s", f"{steps} steps, SSIM {last['ssim']:.3f}",
