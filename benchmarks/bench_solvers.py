@@ -21,6 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.optimize  # noqa: E402
+import scipy.sparse  # noqa: E402
 
 import hiddenjax as hj  # noqa: E402
 from _report import Table, finish_plot  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
@@ -118,9 +119,8 @@ def main(argv=None):
     # 4. scipy: the same bounded least squares, for reference
     ls, lr = (float(v) for v in hj.solvers.regularization_weights(T, hj.solvers.DEFAULT_SMOOTH, hj.solvers.DEFAULT_RIDGE))
     D = grid.difference_matrix()
-    import scipy.sparse as sp
-
-    M = sp.vstack([sp.csr_matrix(np.asarray(T.A, np.float64)), np.sqrt(ls) * D, np.sqrt(lr) * sp.eye(N)]).tocsr()
+    A64 = scipy.sparse.csr_matrix(np.asarray(T.A, np.float64))
+    M = scipy.sparse.vstack([A64, np.sqrt(ls) * D, np.sqrt(lr) * scipy.sparse.eye(N)]).tocsr()
     b = np.concatenate([np.asarray(T.image_to_rows(jnp.asarray(photo)), np.float64), np.zeros(D.shape[0] + N)])
     t0 = time.perf_counter()
     ref = scipy.optimize.lsq_linear(M.toarray(), b, bounds=(0, np.inf), method="trf", lsq_solver="exact",

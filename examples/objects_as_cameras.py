@@ -45,19 +45,19 @@ def main(argv=None):
     t_ref = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    solution = hj.solve_illumination(T, reference)
+    operator = hj.solvers.IlluminationOperator.build(T)  # A^T A formed once for both solves
+    solution = operator.solve(reference)
     estimate = np.asarray(solution.env)
     t_solve = time.perf_counter() - t0
-    signed = np.asarray(hj.solve_illumination(T, reference, nonneg=False).env)
+    signed = np.asarray(operator.solve(reference, nonneg=False).env)
     errors = hj.metrics.env_errors(estimate, envmap)
     errors_signed = hj.metrics.env_errors(signed, envmap)
-    true_sun = np.unravel_index(np.argmax(envmap.mean(axis=2)), grid.shape)
+    sun = int(np.argmax(envmap.mean(axis=2)))
     found_sun = np.unravel_index(np.argmax(estimate.mean(axis=2)), grid.shape)
 
     mask = T.mask
     diff = np.where(mask[..., None], image - reference, np.nan)  # NaN: outside the mask, drawn grey
     relrmse = float(np.linalg.norm(diff[mask]) / np.linalg.norm(reference[mask]))
-    sun = int(np.argmax(envmap.mean(axis=2)))
     column = np.where(mask, np.asarray(T.rows_to_image(T.A[:, sun])), np.nan)
 
     hj.io.write_exr(args.out / "image.exr", image)
@@ -95,7 +95,7 @@ def main(argv=None):
         env_errors={k: round(v, 4) for k, v in errors.items()},
         env_errors_unconstrained={k: round(v, 4) for k, v in errors_signed.items()},
         sun_found=[int(v) for v in found_sun],
-        sun_true=[int(v) for v in true_sun],
+        sun_true=list(divmod(sun, grid.width)),
     )
     (args.out / "results.json").write_text(json.dumps(results, indent=2))
     print(json.dumps(results, indent=2))

@@ -18,6 +18,7 @@ from ._illumination import (
     _check_image,
     _check_weights,
     _kkt_residual,
+    normal_matrix,
     prior_matrix,
     regularization_weights,
 )
@@ -35,7 +36,8 @@ class AdamSolution(eqx.Module):
 
 
 class AdamProblem(eqx.Module):
-    """Adam on eq. 5.3 for one channel `y (P,)`, as a resumable stepper: `init()`, `step(carry)`, `env(carry)`."""
+    """Adam on eq. 5.3 for one channel `y (P,)`, as a resumable stepper: `init()`, `step(carry)`, and `x(z)`
+    for the map of a carry's `z`."""
 
     A: Float[Array, "P N"]
     R: Float[Array, "N N"]
@@ -95,7 +97,6 @@ def solve_illumination_adam(
         return x, jnp.concatenate([history[1:], problem.objective(x)[None]])
 
     x, history = one(y) if y.ndim == 1 else jax.vmap(one, in_axes=1, out_axes=-1)(y)
-    ls, lr = regularization_weights(T, smooth, ridge, absolute)
-    B = T.A.T @ T.A + prior_matrix(T.grid, ls, lr, T.A.dtype)
+    B = normal_matrix(T, *regularization_weights(T, smooth, ridge, absolute))
     kkt = _kkt_residual(B, T.A.T @ y, x, True)
     return AdamSolution(x.reshape(T.grid.shape + x.shape[1:]), history, kkt, jnp.array(steps))
