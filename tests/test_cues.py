@@ -1,0 +1,191 @@
+"""Cues of the linear inverse (leverage, Cook's distance, uncertainty, gain images) and saliency."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hiddenjax as hj
+
+
+@pytest.fixture(scope="module")
+def scene_T(small_setup):
+    with jax.enable_x64():
+        T = hj.transport_matrix(small_setup.scene, small_setup.camera, hj.EnvGrid(4, 8), samples=4,
+                                pixel_samples=1, progress=False)
+        return _float64(T)
+
+
+def _float64(T):
+    return hj.TransportMatrix(jnp.asarray(T.A, jnp.float64), jnp.asarray(T.albedo, jnp.float64), T.pixels, T.grid,
+                              T.image_shape)
+
+
+def _random_T(rng, image=(8, 8), grid=(2, 4), masked=4):
+    """A well-conditioned random problem: 60 observed pixels x 8 directions, full column rank."""
+    g = hj.EnvGrid(*grid)
+    pixels = np.sort(rng.permutation(image[0] * image[1])[: image[0] * image[1] - masked])
+    A = rng.uniform(0, 1, (pixels.size, g.size)) ** 3
+    return hj.TransportMatrix(jnp.asarray(A), jnp.ones(pixels.size), jnp.asarray(pixels), g, image)
+
+
+def _dense(T, cues):
+    A = np.asarray(T.A)
+    D = T.grid.difference_matrix(dense=True)
+    B = A.T @ A + float(cues.smooth) * D.T @ D + float(cues.ridge) * np.eye(T.grid.size)
+    return A, B, float(cues.smooth) * D.T @ D + float(cues.ridge) * np.eye(T.grid.size)
+
+
+@pytest.mark.parametrize("method", ["qr", "cholesky"])
+@pytest.mark.parametrize("smooth", [0.0, 0.05])
+def test_leverage_is_the_hat_diagonal(scene_T, smooth, method):
+    with jax.enable_x64():
+        # several QR updates and leverage blocks, the last ones shifted back over rows already taken
+        assert scene_T.A.shape[0] % 100 != 0
+        cues = hj.cues.LinearCues.build(scene_T, ridge=1e-3, smooth=smooth, method=method, qr_chunk=100)
+        h = np.asarray(cues.leverage(chunk=100))
+        A, B, _ = _dense(scene_T, cues)
+        H = A @ np.linalg.solve(B, A.T)
+        np.testing.assert_allclose(h, np.diag(H), rtol=1e-9, atol=1e-14)
+        assert h.min() >= 0 and h.max() <= 1
+        np.testing.assert_allclose(h.sum(), np.trace(H), rtol=1e-9)
+        np.testing.assert_allclose(float(cues.effective_dof()), np.trace(H), rtol=1e-9)
+        np.testing.assert_allclose(hj.cues.leverage(scene_T, ridge=1e-3, smooth=smooth), h, rtol=1e-12)
+
+
+def test_leverage_under_jit_matches_eager(scene_T):
+    with jax.enable_x64():
+        eager = hj.cues.leverage(scene_T)
+        jitted = jax.jit(lambda T: hj.cues.leverage(T))(scene_T)
+        np.testing.assert_allclose(jitted, eager, rtol=1e-10)
+
+
+def test_effective_dof_is_N_without_regularization():
+    with jax.enable_x64():
+        T = _random_T(np.random.default_rng(1))
+        cues = hj.cues.LinearCues.build(T, ridge=0.0)
+        np.testing.assert_allclose(float(cues.effective_dof()), T.grid.size, rtol=1e-10)
+        np.testing.assert_allclose(float(jnp.sum(cues.leverage())), T.grid.size, rtol=1e-10)
+
+
+def _brute_cooks(A, y, R):
+    """Leave each pixel out, refit, and measure how far the whole re-projected fit moves."""
+    M, N = A.shape
+    fit = A @ np.linalg.solve(A.T @ A + R, A.T @ y)
+    p = np.trace(A @ np.linalg.solve(A.T @ A + R, A.T))
+    e = y - fit
+    s2 = e @ e / (M - p)
+    out = np.empty(M)
+    for i in range(M):
+        keep = np.arange(M) != i
+        x_i = np.linalg.solve(A[keep].T @ A[keep] + R, A[keep].T @ y[keep])
+        out[i] = np.sum((fit - A @ x_i) ** 2) / (p * s2)
+    return out
+
+
+def test_cooks_distance_matches_leave_one_out_unregularized():
+    with jax.enable_x64():
+        rng = np.random.default_rng(2)
+        T = _random_T(rng)
+        image = rng.uniform(0, 2, T.image_shape)
+        cooks = np.asarray(hj.cues.cooks_distance(T, image, ridge=0.0))
+        A = np.asarray(T.A)
+        brute = _brute_cooks(A, np.asarray(T.image_to_rows(image)), np.zeros((A.shape[1],) * 2))
+        np.testing.assert_allclose(cooks, brute, rtol=1e-6)
+        # and it is the thesis' form e^2 h / ((1-h)^2 p s^2) with p = N, s^2 = e'e / (M - N)
+        y = np.asarray(T.image_to_rows(image))
+        H = A @ np.linalg.solve(A.T @ A, A.T)
+        e, h, (M, N) = y - H @ y, np.diag(H), A.shape
+        np.testing.assert_allclose(cooks, e**2 * h / ((1 - h) ** 2 * N * (e @ e / (M - N))), rtol=1e-8)
+
+
+@pytest.mark.parametrize("smooth", [0.0, 0.05])
+def test_cooks_distance_matches_leave_one_out_regularized(scene_T, smooth):
+    with jax.enable_x64():
+        env = hj.scenes.procedural_sky(4, 8).mean(-1)
+        image = np.asarray(hj.render(scene_T, env)) * (1 + 0.05 * np.random.default_rng(3).standard_normal(
+            scene_T.image_shape))
+        cues = hj.cues.LinearCues.build(scene_T, ridge=1e-3, smooth=smooth)
+        cooks = np.asarray(cues.cooks_distance(image, chunk=300))
+        A, _, R = _dense(scene_T, cues)
+        brute = _brute_cooks(A, np.asarray(scene_T.image_to_rows(image)), R)
+        np.testing.assert_allclose(cooks, brute, rtol=1e-6, atol=1e-12 * brute.max())
+
+
+def test_uncertainty_is_the_covariance_diagonal(scene_T):
+    with jax.enable_x64():
+        cues = hj.cues.LinearCues.build(scene_T, ridge=1e-3)
+        u = np.asarray(cues.uncertainty())
+        _, B, _ = _dense(scene_T, cues)
+        np.testing.assert_allclose(u.ravel(), np.sqrt(np.diag(np.linalg.inv(B))), rtol=1e-9)
+        # no observed pixel sees below the plane: those directions reach the bound 1/sqrt(ridge)
+        unseen = np.asarray(jnp.all(scene_T.A == 0, axis=0)).reshape(scene_T.grid.shape)
+        assert unseen[2:].all() and not unseen[:2].any()
+        np.testing.assert_allclose(u[unseen], 1 / np.sqrt(float(cues.ridge)), rtol=1e-9)
+        assert u[~unseen].max() < u[unseen].min()
+        np.testing.assert_allclose(hj.cues.uncertainty(scene_T, ridge=1e-3, noise=0.5), 0.5 * u, rtol=1e-12)
+
+
+def test_gain_images_reproduce_the_unconstrained_estimate(scene_T):
+    with jax.enable_x64():
+        env = hj.scenes.procedural_sky(4, 8).mean(-1)
+        photo = np.asarray(hj.render(scene_T, env)) + 0.01
+        ks = np.array([0, 5, 9, 14])
+        gains = np.asarray(hj.cues.gain_images(scene_T, ks))
+        assert gains.shape == (4,) + scene_T.image_shape
+        assert np.all(gains[:, ~scene_T.mask] == 0)
+        x = np.asarray(hj.solve_illumination(scene_T, photo, nonneg=False).env).ravel()
+        np.testing.assert_allclose(np.einsum("khw,hw->k", gains, photo), x[ks], rtol=1e-9)
+        pairs = np.stack([ks // 8, ks % 8], axis=1)
+        np.testing.assert_allclose(hj.cues.gain_images(scene_T, pairs), gains, rtol=1e-12)
+
+
+def test_saliency_of_a_linear_estimate_is_its_gain_image(scene_T, getkey):
+    with jax.enable_x64():
+        photo = np.asarray(hj.render(scene_T, hj.scenes.procedural_sky(4, 8).mean(-1)))
+        predict = lambda y: hj.solve_illumination(scene_T, y, nonneg=False).env[1, 3]
+        s = hj.cues.saliency(jax.jit(predict), photo)
+        gain = hj.cues.gain_images(scene_T, np.array([[1, 3]]))[0]
+        np.testing.assert_allclose(s, gain, rtol=1e-8, atol=1e-12 * float(jnp.abs(gain).max()))
+        # SmoothGrad of a linear predictor: the gradient is the same at every noisy copy
+        smooth = hj.cues.saliency(predict, photo, key=getkey(), samples=4)
+        np.testing.assert_allclose(smooth, gain, rtol=1e-8, atol=1e-12 * float(jnp.abs(gain).max()))
+
+
+def test_saliency_of_a_nonlinear_predictor_matches_finite_differences(getkey):
+    with jax.enable_x64():
+        image = jax.random.uniform(getkey(), (5, 6), jnp.float64)
+        predict = lambda y: jnp.sum(jnp.tanh(3 * y) * jnp.arange(30.0).reshape(5, 6))
+        s = np.asarray(hj.cues.saliency(predict, image))
+        eps = 1e-6
+        fd = np.array([(predict(image.at[i, j].add(eps)) - predict(image.at[i, j].add(-eps))) / (2 * eps)
+                       for i in range(5) for j in range(6)]).reshape(5, 6)
+        np.testing.assert_allclose(s, fd, rtol=1e-6, atol=1e-9)
+
+
+def test_effective_rank():
+    g = hj.EnvGrid(2, 4)
+    make = lambda A: hj.TransportMatrix(jnp.asarray(A), jnp.ones(A.shape[0]), jnp.arange(A.shape[0]), g, (4, 4))
+    assert hj.cues.effective_rank(make(np.eye(16)[:, :8] * 3.0)) == pytest.approx(8.0)
+    assert hj.cues.effective_rank(make(np.outer(np.arange(1.0, 17.0), np.ones(8)))) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_bad_input_raises_clear_errors(scene_T):
+    with jax.enable_x64():
+        with pytest.raises(Exception, match="singular"):  # columns below the plane are all zero
+            hj.cues.leverage(scene_T, ridge=0.0)
+        with pytest.raises(ValueError, match="ridge must be a finite, non-negative"):
+            hj.cues.uncertainty(scene_T, ridge=-1.0)
+        rgb = np.ones(scene_T.image_shape + (3,))
+        with pytest.raises(ValueError, match="one channel"):
+            hj.cues.cooks_distance(scene_T, rgb)
+        with pytest.raises(ValueError, match="does not match"):
+            hj.cues.cooks_distance(scene_T, np.ones((5, 5)))
+        with pytest.raises(ValueError, match="out of range"):
+            hj.cues.gain_images(scene_T, np.array([32]))
+        with pytest.raises(ValueError, match="method must be"):
+            hj.cues.LinearCues.build(scene_T, method="svd")
+        with pytest.raises(ValueError, match="one TransportMatrix"):
+            hj.cues.leverage([scene_T, scene_T])
+        with pytest.raises(ValueError, match="scalar"):
+            hj.cues.saliency(lambda y: y.sum(0), np.ones((3, 3)))
