@@ -3,8 +3,8 @@
 Thesis Fig. 6-4: the same plane and camera with three occluders (and the bare plane as the
 baseline), each with its Embree transport matrix; for each, the per-pixel leverage `h_ii`
 (eq. 6.2: which pixels carry information) and the env-map uncertainty `sqrt(diag((A^T A + lr I)^-1))`
-(which directions it can recover), with one absolute ridge for all so the maps compare. Writes a
-contact sheet, `results.md` (summary table) and `results.json`.
+(which directions it can recover), with one absolute ridge for all so the maps compare. Writes two
+contact sheets (leverage; uncertainty over the sky), `results.md` (summary table) and `results.json`.
 
     python examples/object_cameras.py [--quick] [--out DIR]
 """
@@ -70,10 +70,11 @@ def main(argv=None):
     u_limit = max(float(np.log10(np.percentile(m[1][grid.upper_hemisphere()], 99) / u_min)) for m in maps.values())
     h_limit = max(float(np.nanpercentile(m[0], 99.5)) for m in maps.values())
     panels = [(f"leverage: {name}", m[0], "map", h_limit) for name, m in maps.items()]
+    hj.io.contact_sheet(args.out / "object_cameras_leverage.png", panels, height=200)
     upper = slice(0, grid.height // 2)  # below the horizon nothing is seen: uncertainty at its bound there
-    panels += [(f"log10 uncertainty, sky: {name}", np.log10(m[1][upper] / u_min), "map", u_limit)
-               for name, m in maps.items()]
-    hj.io.contact_sheet(args.out / "object_cameras.png", panels, height=200, columns=len(maps))
+    panels = [(f"log10 uncertainty, sky: {name}", np.log10(m[1][upper] / u_min), "map", u_limit)
+              for name, m in maps.items()]
+    hj.io.contact_sheet(args.out / "object_cameras_uncertainty.png", panels, height=100, columns=2)
 
     header = "| object | mean uncertainty (upper) | median | vs plane | effective rank | effective dof | max leverage |"
     lines = [header, "|" + "---|" * 7]

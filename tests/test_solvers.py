@@ -111,6 +111,10 @@ def test_bad_input(x64):
         hj.solve_illumination(T, bad)
     with pytest.raises(ValueError, match="non-negative"):
         hj.solve_illumination(T, image, ridge=-1.0)
+    # a direction no pixel sees and no regularization: B is singular, not a silent NaN map
+    blind = hj.TransportMatrix(T.A.at[:, 0].set(0.0), T.albedo, T.pixels, T.grid, T.image_shape)
+    with pytest.raises(Exception, match="not positive definite"):
+        hj.solve_illumination(blind, image, smooth=0.0, ridge=0.0)
 
 
 @pytest.fixture(scope="module")

@@ -123,7 +123,12 @@ class IlluminationOperator(eqx.Module):
         _check_weights(smooth, ridge)
         ls, lr = regularization_weights(Ts, smooth, ridge, absolute)
         B = normal_matrix(Ts, ls, lr)
-        return cls(Ts, B, jnp.linalg.cholesky(B), jnp.asarray(ls), jnp.asarray(lr))
+        factor = jnp.linalg.cholesky(B)
+        factor = eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)),
+                              "A^T A + smooth D^T D + ridge I is not positive definite in this precision: the "
+                              "weights are too small for the dtype (float32 needs relative ridge of about 1e-7 or "
+                              "more) or zero; raise ridge, or use float64 (jax_enable_x64)")
+        return cls(Ts, B, factor, jnp.asarray(ls), jnp.asarray(lr))
 
     def inverse(self) -> Float[Array, "N P"]:
         """`G = (A^T A + R)^-1 A^T` (eq. 5.9 with the smoothness prior); `G @ y` is the signed estimate.
