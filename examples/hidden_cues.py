@@ -45,7 +45,8 @@ def main(argv=None):
     # two light directions: high and to one side, low and behind (rows count from the zenith)
     H, W = grid.shape
     lights = np.array([[H // 6, W // 8], [H // 3, W // 2 + W // 8]])
-    gains = np.asarray(hj.cues.gain_images(T, lights))
+    solver_cues = hj.cues.LinearCues.build(T, hj.solvers.DEFAULT_RIDGE, hj.solvers.DEFAULT_SMOOTH)  # G of the solver
+    gains = np.asarray(solver_cues.gain_images(lights))
     shadows = [np.asarray(T.rows_to_image(T.A[:, i * W + j])) for i, j in lights]
 
     operator = hj.solvers.IlluminationOperator.build(T)
@@ -66,7 +67,7 @@ def main(argv=None):
 
     saliency_elevation = np.asarray(hj.cues.saliency(jax.jit(sun_elevation), photo, key=jax.random.key(0),
                                                      samples=4 if args.quick else 16, noise=0.05))
-    gain_sun = np.asarray(hj.cues.gain_images(T, np.array([sun]))[0])
+    gain_sun = np.asarray(solver_cues.gain_images(np.array([sun]))[0])
     saliency_vs_gain = float(np.max(np.abs(saliency_sun - gain_sun)) / np.max(np.abs(gain_sun)))
 
     white = float(np.percentile(photo[mask], 99))

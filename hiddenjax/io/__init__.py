@@ -6,7 +6,7 @@ from ._images import colormap as colormap
 from ._images import read_hdr as read_hdr
 from ._images import tonemap as tonemap
 from ._images import write_hdr as write_hdr
-from ._images import write_map as write_map
 from ._images import write_png as write_png
 from ._sheet import contact_sheet as contact_sheet
 from ._sheet import panel as panel
+from ._sheet import write_map as write_map

@@ -74,24 +74,6 @@ def write_png(path, array, gamma: float = 2.2, exposure: float = 1.0, white: flo
     _imwrite(path, a[..., ::-1] if a.ndim == 3 else a)
 
 
-def write_map(path, array, signed: bool = False, limit: float | None = None, gamma: float = 1.0) -> None:
-    """Write a scalar map (leverage, uncertainty, saliency, Cook's distance) as a false-colour PNG.
-
-    `signed` uses blue-white-red around zero (saliency, gain images), otherwise inferno; `limit`
-    is the value drawn at full colour (default the 99th percentile of `|array|`); `gamma < 1`
-    compresses the range (`|v|^gamma`, sign kept; the thesis draws Cook's distance with 0.5).
-    NaN (no data) is drawn grey.
-    """
-    a = np.asarray(array, dtype=np.float64)
-    if a.ndim != 2:
-        raise ValueError(f"expected a map (H, W), got shape {a.shape}")
-    missing = np.isnan(a)
-    a = np.sign(a) * np.abs(np.nan_to_num(a)) ** gamma
-    rgb = colormap(a, signed=signed, limit=None if limit is None else limit**gamma)
-    rgb[missing] = 128
-    _imwrite(path, rgb[..., ::-1])
-
-
 def _imwrite(path, bgr) -> None:
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), bgr):

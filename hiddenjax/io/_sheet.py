@@ -25,6 +25,21 @@ def panel(image, kind: str = "radiance", white: float | None = None) -> np.ndarr
     return rgb
 
 
+def write_map(path, array, signed: bool = False, limit: float | None = None, gamma: float = 1.0) -> None:
+    """Write a scalar map (leverage, uncertainty, saliency, Cook's distance) as a false-colour PNG.
+
+    `signed` uses blue-white-red around zero (saliency, gain images), otherwise inferno; `limit`
+    is the value drawn at full colour (default the 99th percentile of `|array|`); `gamma < 1`
+    compresses the range (`|v|^gamma`, sign kept; the thesis draws Cook's distance with 0.5).
+    NaN (no data) is drawn grey.
+    """
+    a = np.asarray(array, dtype=np.float64)
+    if a.ndim != 2:
+        raise ValueError(f"expected a map (H, W), got shape {a.shape}")
+    a = np.sign(a) * np.abs(a) ** gamma  # NaN stays NaN: `panel` draws it grey
+    write_png(path, panel(a, "signed" if signed else "map", None if limit is None else limit**gamma))
+
+
 def contact_sheet(path, panels, height: int = 256, columns: int | None = None) -> np.ndarray:
     """Write labelled panels to a PNG and return the sheet (uint8 RGB).
 

@@ -126,8 +126,8 @@ class IlluminationOperator(eqx.Module):
         factor = jnp.linalg.cholesky(B)
         factor = eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)),
                               "A^T A + smooth D^T D + ridge I is not positive definite in this precision: the "
-                              "weights are too small for the dtype (float32 needs relative ridge of about 1e-7 or "
-                              "more) or zero; raise ridge, or use float64 (jax_enable_x64)")
+                              "weights are too small for the dtype (on the teapot fixture float32 needs a relative "
+                              "ridge of about 1e-6 or more) or zero; raise ridge, or use float64 (jax_enable_x64)")
         return cls(Ts, B, factor, jnp.asarray(ls), jnp.asarray(lr))
 
     def inverse(self) -> Float[Array, "N P"]:
