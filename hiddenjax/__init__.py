@@ -8,14 +8,17 @@ from . import io as io
 from . import metrics as metrics
 from . import solvers as solvers
 from . import scene as scenes
+from . import shadows as shadows
 from .scene import Camera as Camera
 from .scene import EnvGrid as EnvGrid
 from .scene import Scene as Scene
 from .scene import Surface as Surface
 from .solvers import solve_illumination as solve_illumination
 from .transport import TransportMatrix as TransportMatrix
+from .transport import depth_map as depth_map
 from .transport import reference_render as reference_render
 from .transport import render as render
+from .transport import render_point_lights as render_point_lights
 from .transport import transport_matrix as transport_matrix
 
 __version__ = "0.1.0"

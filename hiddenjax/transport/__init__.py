@@ -7,3 +7,5 @@ from ._embree import RayCaster as RayCaster
 from ._matrix import TransportMatrix as TransportMatrix
 from ._matrix import render as render
 from ._reference import reference_render as reference_render
+from ._point_lights import depth_map as depth_map
+from ._point_lights import render_point_lights as render_point_lights

@@ -1,0 +1,33 @@
+"""Shadow edges (thesis ch. 4): edge-plane coordinates, localization, sigmoid shadow volumes."""
+
+from ._depth import association_angle as association_angle
+from ._depth import depth_normals as depth_normals
+from ._depth import depth_to_points as depth_to_points
+from ._depth import fit_edge as fit_edge
+from ._depth import fit_plane as fit_plane
+from ._depth import lift_to_plane as lift_to_plane
+from ._depth import sample_points as sample_points
+from ._edges import edge_angle as edge_angle
+from ._edges import edge_coordinates as edge_coordinates
+from ._edges import edge_frame as edge_frame
+from ._edges import edge_plane_normal as edge_plane_normal
+from ._edges import half_plane_direction as half_plane_direction
+from ._edges import plane_alpha as plane_alpha
+from ._edges import plane_angle as plane_angle
+from ._localize import Localization as Localization
+from ._localize import intersect_planes as intersect_planes
+from ._localize import localize_from_edges as localize_from_edges
+from ._localize import point_from_coordinates as point_from_coordinates
+from ._visibility import DEFAULT_TEMPERATURE as DEFAULT_TEMPERATURE
+from ._visibility import Occluder as Occluder
+from ._visibility import Receivers as Receivers
+from ._visibility import culled_log_visibility as culled_log_visibility
+from ._visibility import log_visibility as log_visibility
+from ._visibility import shadow_volume_planes as shadow_volume_planes
+from ._visibility import soft_visibility as soft_visibility
+from ._fit import LightFit as LightFit
+from ._fit import fit_lights as fit_lights
+from ._shading import ShadowScene as ShadowScene
+from ._shading import light_images as light_images
+from ._shading import render_lights as render_lights
+from ._shading import shading as shading

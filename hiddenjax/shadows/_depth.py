@@ -1,0 +1,138 @@
+"""From a depth map to 3-D edges and shadow points, and the image-space association check.
+
+The thesis annotates edges and shadows in the image and lifts them to 3-D with a per-pixel depth
+(a z-buffer). Pixel coordinates are continuous `(row, col)` with pixel centres at `+.5`, as
+`Camera` defines them.
+"""
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ..scene import Camera
+
+
+def depth_to_points(depth: Float[Array, "H W"], camera: Camera) -> Float[Array, "H W 3"]:
+    """World points of a z-buffer: `depth[r, c]` is the camera-space `z` seen at the pixel centre."""
+    depth = jnp.asarray(depth)
+    if depth.shape != (camera.height, camera.width):
+        raise ValueError(f"depth shape {depth.shape} does not match the camera's {(camera.height, camera.width)}")
+    rows, cols = jnp.meshgrid(jnp.arange(camera.height) + 0.5, jnp.arange(camera.width) + 0.5, indexing="ij")
+    fx, fy, cx, cy = camera.intrinsics
+    cam = jnp.stack([(cols - cx) / fx * depth, (rows - cy) / fy * depth, depth], axis=-1)
+    return (cam - camera.translation[None, None]) @ camera.rotation
+
+
+def depth_normals(points: Float[Array, "H W 3"], camera: Camera) -> Float[Array, "H W 3"]:
+    """Unit surface normals from the point cloud's image-space gradients, facing the camera.
+
+    Central differences inside the image, one-sided at its border; a pixel whose neighbours
+    span no area (a hole, a depth edge collapsed to a line) gets the normal facing the camera.
+    """
+    points = jnp.asarray(points)
+    du = jnp.gradient(points, axis=1)
+    dv = jnp.gradient(points, axis=0)
+    n = jnp.cross(du, dv)
+    to_camera = camera.origin[None, None] - points
+    length = jnp.linalg.norm(n, axis=-1, keepdims=True)
+    n = jnp.where(length > 0, n / jnp.where(length > 0, length, 1.0), to_camera)
+    n = jnp.where(jnp.sum(n * to_camera, axis=-1, keepdims=True) < 0, -n, n)
+    return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def sample_points(points: Float[Array, "H W C"], pixels: Float[Array, "*K 2"]) -> Float[Array, "*K C"]:
+    """Bilinear lookup of a per-pixel field (points, normals) at continuous `(row, col)` coordinates."""
+    points = jnp.asarray(points)
+    pixels = jnp.asarray(pixels, dtype=points.dtype)
+    H, W = points.shape[:2]
+    r = jnp.clip(pixels[..., 0] - 0.5, 0, H - 1)
+    c = jnp.clip(pixels[..., 1] - 0.5, 0, W - 1)
+    r0 = jnp.clip(jnp.floor(r).astype(jnp.int32), 0, H - 2)
+    c0 = jnp.clip(jnp.floor(c).astype(jnp.int32), 0, W - 2)
+    fr, fc = (r - r0)[..., None], (c - c0)[..., None]
+    at = lambda i, j: points[i, j]
+    return (at(r0, c0) * (1 - fr) * (1 - fc) + at(r0, c0 + 1) * (1 - fr) * fc
+            + at(r0 + 1, c0) * fr * (1 - fc) + at(r0 + 1, c0 + 1) * fr * fc)
+
+
+def association_angle(camera: Camera, edge, shadow_pixels, receiver_point, receiver_normal) -> float:
+    """Angle in degrees by which a candidate shadow line misses the point its edge predicts.
+
+    An edge casts its shadow onto a plane along a line through the point where the extended edge
+    pierces that plane. In the image, the line along the shadow therefore passes through that
+    point's projection, which is a vanishing point when the edge is parallel to the plane (thesis
+    Fig. 4-5 c, f). A true edge/shadow association gives an angle near 0; a wrong one does not.
+
+    **Arguments:**
+    - `edge (2, 3)`: world points on the occluding edge.
+    - `shadow_pixels (2, 2)`: `(row, col)` of two points along the candidate shadow line.
+    - `receiver_point (3,)`, `receiver_normal (3,)`: the plane the shadow lies on (from the depth
+      map: `sample_points` of `depth_to_points` and `depth_normals` at a shadow pixel).
+
+    **Returns:** the angle in `[0, 90]` degrees between the shadow line and the direction from
+    its midpoint to the predicted point (homogeneous, so points at infinity need no special case).
+    """
+    s0, s1 = np.asarray(edge, dtype=np.float64)
+    q = np.asarray(shadow_pixels, dtype=np.float64)
+    n = np.asarray(receiver_normal, dtype=np.float64)
+    omega = s1 - s0
+    if np.linalg.norm(omega) == 0 or np.linalg.norm(q[1] - q[0]) == 0 or np.linalg.norm(n) == 0:
+        raise ValueError("association_angle needs a non-degenerate edge, two distinct shadow pixels and a normal")
+    denom, num = n @ omega, n @ (np.asarray(receiver_point, dtype=np.float64) - s0)
+    scale = np.linalg.norm(n) * np.linalg.norm(omega)
+    if abs(denom) < 1e-9 * scale and abs(num) < 1e-9 * scale * (1 + np.linalg.norm(s0)):
+        raise ValueError("the edge lies in the receiver plane: it casts no shadow line onto it")
+    # Homogeneous world point s0 + (num/denom) omega, scaled by denom (w = 0 when parallel).
+    X, w = s0 * denom + omega * num, denom
+    R, t = np.asarray(camera.rotation, np.float64), np.asarray(camera.translation, np.float64)
+    fx, fy, cx, cy = np.asarray(camera.intrinsics, np.float64)
+    x, y, z = R @ X + t * w
+    h = np.array([fy * y + cy * z, fx * x + cx * z])  # (row, col) times the homogeneous z
+    d = h - z * q.mean(axis=0)
+    e = q[1] - q[0]
+    if np.linalg.norm(d) < 1e-12 * np.linalg.norm(h):
+        return 0.0  # the predicted point is the midpoint itself
+    cos = abs(d @ e) / (np.linalg.norm(d) * np.linalg.norm(e))
+    return float(np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))))
+
+
+def fit_edge(points) -> np.ndarray:
+    """A 3-D edge `(2, 3)` fitted to points `(M, 3)` lifted along it (total least squares).
+
+    Depth is noisy at the pixel level; many points along an edge average it out. The ends are the
+    extreme projections of the points on the fitted direction.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 2 or not np.all(np.isfinite(p)):
+        raise ValueError(f"fit_edge needs finite points (M >= 2, 3), got shape {p.shape}")
+    centre = p.mean(axis=0)
+    direction = np.linalg.svd(p - centre, full_matrices=False)[2][0]
+    t = (p - centre) @ direction
+    if np.ptp(t) == 0:
+        raise ValueError("fit_edge: all points coincide; pick pixels spread along the edge")
+    return np.stack([centre + t.min() * direction, centre + t.max() * direction])
+
+
+def fit_plane(points):
+    """`(centre (3,), unit normal (3,))` of the total-least-squares plane through points `(M, 3)`."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(p) < 3 or not np.all(np.isfinite(p)):
+        raise ValueError(f"fit_plane needs at least 3 finite points, got {len(p)}")
+    centre = p.mean(axis=0)
+    return centre, np.linalg.svd(p - centre, full_matrices=False)[2][2]
+
+
+def lift_to_plane(camera: Camera, pixels, centre, normal) -> np.ndarray:
+    """World points `(..., 3)` where the rays through `(row, col)` pixels meet a plane.
+
+    Lifts an occluding edge exactly: the depth jumps at the edge, so read the face's plane from
+    pixels inside it (`fit_plane`) and intersect the edge pixels' rays with it.
+    """
+    d = np.asarray(camera.ray_directions(np.asarray(pixels, np.float64)), np.float64)
+    o = np.asarray(camera.origin, np.float64)
+    normal = np.asarray(normal, np.float64)
+    denom = d @ normal
+    if np.any(np.abs(denom) < 1e-9):
+        raise ValueError("a pixel's ray is parallel to the plane; the edge cannot be lifted onto it")
+    t = ((np.asarray(centre, np.float64) - o) @ normal) / denom
+    return o + t[..., None] * d

@@ -1,0 +1,113 @@
+"""Diffuse shading under point lights with sigmoid shadows (eq. 4.11-4.12), on a scene's pixels.
+
+`ShadowScene.from_scene` casts one Embree ray through each pixel centre (outside the trace) and
+keeps, for the default mask of a transport matrix, the surface point, normal and albedo; the
+occluders are every surface's triangles in clusters. Everything after that is pure JAX and
+differentiable in the light positions, intensities and the occluder vertices.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from ..scene import Camera, Scene
+from ..transport._build import _observed_pixels
+from ..transport._embree import RayCaster, primary_hits
+from ._visibility import DEFAULT_TEMPERATURE, Occluder, Receivers, culled_log_visibility
+
+
+class ShadowScene(eqx.Module):
+    """The observed pixels of a scene as shading points, plus its occluders in clusters.
+
+    **Fields:** `points (P, 3)` (lifted off the surface by the Embree offset), `normals (P, 3)`,
+    `albedo (P,)`, `pixels (P,)` flat indices into `image_shape`, `receivers` and `occluder`
+    (the tiled and clustered forms used by `culled_log_visibility`), `scale` the scene's
+    bounding-box diagonal in metres.
+    """
+
+    points: Float[Array, "P 3"]
+    normals: Float[Array, "P 3"]
+    albedo: Float[Array, " P"]
+    pixels: Int[Array, " P"]
+    receivers: Receivers
+    occluder: Occluder
+    image_shape: tuple[int, int] = eqx.field(static=True)
+    scale: float = eqx.field(static=True)
+
+    @classmethod
+    def from_scene(cls, scene: Scene, camera: Camera, mask=None, *, tile: int = 64, cluster: int = 32):
+        """Pixel-centre surface points of the default mask (observed surfaces; `mask` narrows it)."""
+        caster = RayCaster(scene)
+        rows, cols = np.meshgrid(np.arange(camera.height) + 0.5, np.arange(camera.width) + 0.5, indexing="ij")
+        d = np.asarray(camera.ray_directions(np.stack([rows, cols], -1).reshape(-1, 2)), dtype=np.float64)
+        hits = caster.intersect(np.broadcast_to(np.asarray(camera.origin, np.float64), d.shape), d)
+        pixels = _observed_pixels(scene, hits, (camera.height, camera.width), 1, mask, False)
+        x = hits.position[pixels] + caster.offset * hits.normal[pixels]
+        surface = hits.surface[pixels]
+        tri = np.concatenate([s.triangles for s in scene])
+        owner = np.concatenate([np.full(len(s.triangles), k) for k, s in enumerate(scene)])
+        planar = [s.planar for s in scene]
+        return cls(
+            points=jnp.asarray(x, jnp.float32),
+            normals=jnp.asarray(hits.normal[pixels], jnp.float32),
+            albedo=jnp.asarray(hits.albedo[pixels], jnp.float32),
+            pixels=jnp.asarray(pixels, jnp.int32),
+            receivers=Receivers.from_points(x, surface, planar, tile=tile),
+            occluder=Occluder.from_triangles(tri, owner, cluster=cluster),
+            image_shape=(camera.height, camera.width),
+            scale=float(np.linalg.norm(np.ptp(x, axis=0))),
+        )
+
+    def rows_to_image(self, rows):
+        """Scatter `(P,)` values into an `(H, W)` image, zero outside the mask."""
+        H, W = self.image_shape
+        return jnp.zeros(H * W, rows.dtype).at[self.pixels].set(rows).reshape(H, W)
+
+    def image_to_rows(self, image):
+        image = jnp.asarray(image)
+        if image.shape[:2] != self.image_shape:
+            raise ValueError(f"image shape {image.shape} does not match the scene's camera {self.image_shape}")
+        if image.ndim == 3:
+            image = image.mean(axis=-1)  # positions are fitted to the grey (channel mean) image
+        return image.reshape(-1)[self.pixels]
+
+
+def shading(points, normals, albedo, light, intensity=1.0):
+    """Unshadowed diffuse radiance `albedo/pi * I * max(0, n.w) / d^2` of a point light (eq. 4.11)."""
+    v = jnp.asarray(light)[None] - points
+    d2 = jnp.sum(v * v, axis=-1)
+    cos = jnp.sum(normals * v, axis=-1) * jax.lax.rsqrt(d2)
+    return albedo / jnp.pi * intensity * jnp.maximum(cos, 0.0) / d2
+
+
+def light_images(shadows: ShadowScene, positions, temperature=DEFAULT_TEMPERATURE, **kwargs) -> Float[Array, "L P"]:
+    """Per-light radiance `(L, P)` at unit intensity with sigmoid shadows (eq. 4.11-4.12).
+
+    Lights are visited one after another (`lax.map`), so memory does not grow with their number.
+    `kwargs` go to `culled_log_visibility` (`tolerance`, `group`).
+    """
+    positions = jnp.atleast_2d(jnp.asarray(positions, shadows.points.dtype))
+
+    def one(light):
+        logv = shadows.receivers.scatter(culled_log_visibility(shadows.receivers, shadows.occluder, light,
+                                                                temperature, **kwargs))
+        return shading(shadows.points, shadows.normals, shadows.albedo, light) * jnp.exp(logv)
+
+    return jax.lax.map(one, positions)
+
+
+def render_lights(shadows: ShadowScene, positions, intensities=None, temperature=DEFAULT_TEMPERATURE,
+                  ambient: float = 0.0, ambient_direction=(0.0, 1.0, 0.0)) -> Float[Array, "H W"]:
+    """Image `(H, W)` of point lights `(L, 3)` with intensities `(L,)` (W/sr), sigmoid shadows (eq. 4.11).
+
+    `ambient` adds the thesis' term `g * max(0, l_g . n) * albedo/pi` for a fixed direction `l_g`.
+    """
+    images = light_images(shadows, positions, temperature)
+    I = jnp.ones(images.shape[0]) if intensities is None else jnp.asarray(intensities, images.dtype)
+    rows = I @ images
+    if ambient:
+        lg = jnp.asarray(ambient_direction, rows.dtype)
+        rows = rows + ambient * shadows.albedo / jnp.pi * jnp.maximum(shadows.normals @ lg, 0.0)
+    return shadows.rows_to_image(rows)
