@@ -10,6 +10,7 @@ from jax.test_util import check_grads
 import hiddenjax as hj
 from hiddenjax import shadows as sh
 from hiddenjax.transport._embree import RayCaster
+from hiddenjax.transport._point_lights import _occluded_before
 
 RNG = np.random.default_rng(7)
 
@@ -223,11 +224,9 @@ def teapot_points():
 
 
 def _hard_visibility(scene, points, light):
-    caster = RayCaster(scene)
     v = light - points
     d = np.linalg.norm(v, axis=1)
-    hits = caster.intersect(points, v / d[:, None])
-    return ~((hits.surface >= 0) & (np.linalg.norm(hits.position - points, axis=1) < d))
+    return ~_occluded_before(RayCaster(scene), points, v / d[:, None], d)
 
 
 def test_soft_visibility_converges_to_embree_away_from_shadow_edges(teapot_points):

@@ -14,7 +14,7 @@ from jaxtyping import Array, Float, Int
 
 from ..scene import Camera, Scene
 from ..transport._build import _observed_pixels
-from ..transport._embree import RayCaster, primary_hits
+from ..transport._embree import RayCaster, pixel_centre_hits
 from ._visibility import DEFAULT_TEMPERATURE, Occluder, Receivers, culled_log_visibility
 
 
@@ -23,8 +23,8 @@ class ShadowScene(eqx.Module):
 
     **Fields:** `points (P, 3)` (lifted off the surface by the Embree offset), `normals (P, 3)`,
     `albedo (P,)`, `pixels (P,)` flat indices into `image_shape`, `receivers` and `occluder`
-    (the tiled and clustered forms used by `culled_log_visibility`), `scale` the scene's
-    bounding-box diagonal in metres.
+    (the tiled and clustered forms used by `culled_log_visibility`), `scale` the diagonal of the
+    observed points' bounding box in metres (the size of what the camera sees).
     """
 
     points: Float[Array, "P 3"]
@@ -40,9 +40,7 @@ class ShadowScene(eqx.Module):
     def from_scene(cls, scene: Scene, camera: Camera, mask=None, *, tile: int = 64, cluster: int = 32):
         """Pixel-centre surface points of the default mask (observed surfaces; `mask` narrows it)."""
         caster = RayCaster(scene)
-        rows, cols = np.meshgrid(np.arange(camera.height) + 0.5, np.arange(camera.width) + 0.5, indexing="ij")
-        d = np.asarray(camera.ray_directions(np.stack([rows, cols], -1).reshape(-1, 2)), dtype=np.float64)
-        hits = caster.intersect(np.broadcast_to(np.asarray(camera.origin, np.float64), d.shape), d)
+        hits = pixel_centre_hits(caster, camera)
         pixels = _observed_pixels(scene, hits, (camera.height, camera.width), 1, mask, False)
         x = hits.position[pixels] + caster.offset * hits.normal[pixels]
         surface = hits.surface[pixels]

@@ -1,7 +1,8 @@
 """Sigmoid shadow-volume visibility (eq. 4.12), in log space and with bounded memory.
 
 A triangle and a light bound a convex shadow volume: three side planes through the light and
-each edge, and the triangle's own plane (the volume starts behind it). With signed distances
+each edge, and the triangle's own plane (the volume starts behind it). We add three bevel planes
+at the volume's corner rays (see `shadow_volume_planes`). With signed distances
 `alpha_j` positive inside, the soft indicator of the volume is `prod_j sigma(T alpha_j)` and the
 visibility is `V = prod_i (1 - prod_j sigma(T alpha_ij))` over triangles `i` (eq. 4.12; the
 thesis writes `sigma(x) = 1/(1 + e^{Tx})` with the opposite sign convention for `alpha`).
@@ -51,8 +52,8 @@ def shadow_volume_planes(triangles: Float[Array, "F 3 3"], light: Float[Array, "
 
     `alpha = n . p - offset > 0` on the inside of every plane. Planes 0-2 contain the light and an
     edge, oriented towards the opposite vertex; planes 3-5 are the corner bevels; plane 6 is the
-    triangle's, oriented away from the light. `valid` is False for a zero-area triangle or a light in the triangle's plane (a volume
-    of zero thickness, which shadows nothing).
+    triangle's, oriented away from the light. `valid` is False for a zero-area triangle or a
+    light in the triangle's plane (a volume of zero thickness, which shadows nothing).
     """
     light = jnp.asarray(light)
     a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
@@ -277,8 +278,8 @@ def culled_log_visibility(
     A pair is skipped when the tile lies more than `margin = sqrt(2) log(1/tolerance)/T` metres
     outside the cluster's shadow cone, where each skipped triangle's soft indicator is below
     `tolerance` (the bevel planes make a point at distance `d` violate a plane by `d/sqrt(2)`).
-    `temperature` may be traced (one compilation for an annealing schedule). Pairs are visited in blocks of `group` (active ones first) under `lax.cond`,
-    inside a checkpointed `lax.scan`: memory is one block of `B x group x K` temporaries and the
+    `temperature` may be traced (one compilation for an annealing schedule). Pairs are visited
+    in blocks of `group` (active ones first) under `lax.cond`, inside a checkpointed `lax.scan`: memory is one block of `B x group x K` temporaries and the
     `(T, B)` result, whatever the triangle count. Use `receivers.scatter` to get `(P,)`.
     Differentiable in the points, triangles and light (the test itself is not differentiated).
     """
@@ -298,7 +299,7 @@ def culled_log_visibility(
     order = jnp.argsort(~flat, stable=True)
     pad = -flat.size % group
     order = jnp.concatenate([order, jnp.zeros(pad, order.dtype)]).reshape(-1, group)
-    live = jnp.concatenate([flat[order.reshape(-1)[: flat.size]], jnp.zeros(pad, bool)]).reshape(-1, group)
+    live = (jnp.arange(order.size) < jnp.sum(flat)).reshape(-1, group)  # active pairs come first
 
     def block(pairs, mask):
         t, c = pairs // C, pairs % C

@@ -70,6 +70,13 @@ class RayCaster:
         return Hits(surface, face, bary, position, normal, albedo)
 
 
+def pixel_centre_hits(caster: RayCaster, camera: Camera) -> Hits:
+    """Closest hits of one ray through each pixel centre, `(H*W,)` in row-major order."""
+    rows, cols = np.meshgrid(np.arange(camera.height) + 0.5, np.arange(camera.width) + 0.5, indexing="ij")
+    d = np.asarray(camera.ray_directions(np.stack([rows, cols], -1).reshape(-1, 2)), dtype=np.float64)
+    return caster.intersect(np.broadcast_to(np.asarray(camera.origin, np.float64), d.shape), d)
+
+
 def primary_hits(caster: RayCaster, camera: Camera, pixel_samples: int, seed: int):
     """`(hits, directions)` of `pixel_samples` stratified rays per pixel, `(H*W*S,)` in row-major order."""
     origin, directions = camera.primary_rays(pixel_samples, seed)

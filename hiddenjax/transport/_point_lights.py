@@ -9,7 +9,7 @@ sample `x` with normal `n` and albedo `rho` receives, from a light of intensity 
 import numpy as np
 
 from ..scene import Camera, Scene
-from ._embree import RayCaster, primary_hits
+from ._embree import RayCaster, pixel_centre_hits, primary_hits
 
 
 def render_point_lights(
@@ -56,11 +56,7 @@ def _occluded_before(caster: RayCaster, origins, directions, distance) -> np.nda
 
 def depth_map(scene: Scene, camera: Camera) -> np.ndarray:
     """Z-buffer `(H, W)` float32: camera-space depth of the surface seen at each pixel centre, 0 where none."""
-    caster = RayCaster(scene)
-    rows, cols = np.meshgrid(np.arange(camera.height) + 0.5, np.arange(camera.width) + 0.5, indexing="ij")
-    d = np.asarray(camera.ray_directions(np.stack([rows, cols], -1).reshape(-1, 2)), dtype=np.float64)
-    origin = np.asarray(camera.origin, dtype=np.float64)
-    hits = caster.intersect(np.broadcast_to(origin, d.shape), d)
+    hits = pixel_centre_hits(RayCaster(scene), camera)
     R, t = np.asarray(camera.rotation, np.float64), np.asarray(camera.translation, np.float64)
     z = (hits.position @ R.T + t)[:, 2]
     return np.where(hits.surface >= 0, z, 0.0).reshape(camera.height, camera.width).astype(np.float32)
