@@ -65,11 +65,11 @@ def objective(shadows, T, dense=False):
     return jax.jit(jax.value_and_grad(f))
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("out/bench_shadows"))
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path, default=Path("bench_shadows_out"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     size, sections = (48, 32) if args.quick else (128, 80)
     scene, cam, shadows = setup(sections, size)
