@@ -8,6 +8,7 @@ import trimesh
 from jax.test_util import check_grads
 
 import hiddenjax as hj
+from conftest import relrmse
 from hiddenjax import shadows as sh
 from hiddenjax.transport._embree import RayCaster
 from hiddenjax.transport._point_lights import _occluded_before
@@ -311,6 +312,76 @@ def test_point_light_renderers_match_the_closed_form_on_a_bare_plane():
     np.testing.assert_allclose(soft, exact, rtol=1e-4)
     hard = hj.render_point_lights(scene, cam, light[None], [I], pixel_samples=16).reshape(-1)[np.asarray(shadows.pixels)]
     np.testing.assert_allclose(hard, exact, rtol=2e-2)  # box filter vs the pixel centre
+
+
+# -- differentiable transport matrix A(theta) ---------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def soft_transport():
+    setup = hj.scenes.object_on_plane(hj.scene.teapot(16), width=20, height=20)
+    grid = hj.EnvGrid(8, 16)
+    return setup, grid, sh.SoftTransport.from_scene(*setup, grid, samples=4, seed=0)
+
+
+def test_soft_transport_is_exact_without_occluders(plane_only):
+    grid = hj.EnvGrid(8, 16)
+    soft = sh.soft_transport_matrix(*plane_only, grid, temperature=100.0, pixel_samples=2, seed=3)
+    hard = hj.transport_matrix(*plane_only, grid, samples=4, pixel_samples=2, seed=3, progress=False)
+    np.testing.assert_array_equal(soft.pixels, hard.pixels)
+    np.testing.assert_allclose(soft.A, hard.A, rtol=1e-5, atol=1e-7 * float(hard.A.max()))
+
+
+def _hard_transport_on_the_same_samples(scene, st):
+    """The estimator of `SoftTransport.matrix` with Embree's hard visibility on the same directions."""
+    rec = st.receivers
+    x = np.stack([np.asarray(rec.scatter(rec.points[..., i])) for i in range(3)], -1).astype(np.float64)
+    W = np.asarray(st.directions, np.float64)
+    (J, K, _), Q = W.shape, len(x)
+    V = ~RayCaster(scene).occluded(np.repeat(x, J * K, axis=0), np.tile(W.reshape(-1, 3), (Q, 1))).reshape(Q, J, K)
+    cos = np.einsum("qc,jkc->qjk", np.asarray(st.normals, np.float64), W)
+    scale = np.asarray(st.omega)[None, :] / K
+    E = np.where(st.above, np.asarray(st.closed) - scale * np.sum((1 - V) * cos, -1),
+                 np.where(st.straddle, scale * np.sum(V * np.maximum(cos, 0), -1), 0.0))
+    A = np.zeros((Q, st.grid.size))
+    A[:, np.asarray(st.columns)] = np.asarray(st.albedo)[:, None] / np.pi * E
+    return A
+
+
+def test_soft_transport_converges_to_the_embree_matrix_as_T_grows(soft_transport):
+    (scene, cam), grid, st = soft_transport
+    same_samples = _hard_transport_on_the_same_samples(scene, st)
+    # Another path: Embree's builder, 256 independent directions per point and env pixel.
+    embree = hj.transport_matrix(scene, cam, grid, samples=256, pixel_samples=1, seed=0, progress=False)
+    assert np.array_equal(np.asarray(st.pixels), np.asarray(embree.pixels))
+    assert relrmse(same_samples, embree.A) < 0.05  # 4 shared directions' Monte Carlo noise; measured 0.033
+    matrix = jax.jit(lambda s, T: s.matrix(temperature=T))
+    soft = [matrix(st, T) for T in (100.0, 1000.0, 10000.0)]
+    errors = [relrmse(A, same_samples) for A in soft]
+    assert errors[0] > errors[1] > errors[2], errors
+    assert errors[2] < 0.015, errors  # measured 0.27, 0.035, 0.008
+    assert relrmse(soft[2], embree.A) < 0.045  # measured 0.031
+    T = st.transport(temperature=300.0)
+    assert T.A.shape == embree.A.shape and T.grid == grid
+    np.testing.assert_allclose(T.albedo, embree.albedo, rtol=1e-6)
+
+
+def test_soft_transport_derivative_in_the_object_pose_matches_finite_differences(soft_transport):
+    _, _, st = soft_transport
+
+    def A(t):
+        return st.matrix(st.occluder.map_vertices(lambda v: v + t[None], surface=1), temperature=300.0)
+
+    t0, d = jnp.zeros(3), jnp.array([1.0, 0.3, -0.5])
+    _, dA = jax.jit(lambda t, d: jax.jvp(A, (t,), (d,)))(t0, d)
+    f, eps = jax.jit(A), 1e-3
+    fd = (f(t0 + eps * d) - f(t0 - eps * d)) / (2 * eps)
+    assert float(jnp.linalg.norm(fd)) > 1.0
+    assert relrmse(dA, fd) < 0.02  # float32 central differences; measured 0.008
+    # The plane (surface 0) does not move with the object.
+    moved = st.occluder.map_vertices(lambda v: v + 1.0, surface=1)
+    planes = np.asarray(st.occluder.surface) == 0
+    np.testing.assert_array_equal(moved.triangles[planes], st.occluder.triangles[planes])
 
 
 # -- localization by optimization --------------------------------------------------------------------

@@ -28,6 +28,8 @@ from ._visibility import soft_visibility as soft_visibility
 from ._fit import LightFit as LightFit
 from ._fit import fit_lights as fit_lights
 from ._shading import ShadowScene as ShadowScene
+from ._soft_transport import SoftTransport as SoftTransport
+from ._soft_transport import soft_transport_matrix as soft_transport_matrix
 from ._shading import light_images as light_images
 from ._shading import render_lights as render_lights
 from ._shading import shading as shading

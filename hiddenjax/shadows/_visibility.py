@@ -180,6 +180,19 @@ class Occluder(eqx.Module):
                 owner.append(int(s))
         return cls(jnp.asarray(np.stack(blocks)), tuple(owner))
 
+    def map_vertices(self, fn, surface: int | None = None) -> "Occluder":
+        """Apply `fn (..., 3) -> (..., 3)` (e.g. a rigid pose) to the vertices of one surface or all.
+
+        Padding triangles stay zero; the clusters keep their grouping, which `active_pairs`
+        re-bounds from the moved vertices, so culling stays conservative.
+        """
+        tri = self.triangles
+        moved = jnp.asarray(fn(tri.reshape(-1, 3))).reshape(tri.shape)
+        used = jnp.any(tri != 0, axis=(2, 3))
+        if surface is not None:
+            used = used & (jnp.asarray(self.surface) == surface)[:, None]
+        return eqx.tree_at(lambda o: o.triangles, self, jnp.where(used[..., None, None], moved, tri))
+
 
 class Receivers(eqx.Module):
     """Points in spatial tiles for `culled_log_visibility`.
