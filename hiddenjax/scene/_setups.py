@@ -72,3 +72,38 @@ def object_on_plane(
     camera = Camera.look_at(origin, [0.0, 0.25 * size, 0.0], up, fov, width, height)
     scene = Scene([Surface(plane, plane_albedo, observe=True), Surface(obj, albedo, observe=False)])
     return Setup(scene, camera)
+
+
+def doorways(
+    doors=((-2.6, -1.4), (-0.6, 0.6), (1.4, 2.6)),
+    *,
+    wall_height: float = 1.2,
+    thickness: float = 0.03,
+    extent: float = 4.0,
+    width: int = 512,
+    height: int = 256,
+) -> tuple[Setup, np.ndarray]:
+    """A wall along `z = 0` with doorways, on a floor; a camera in front sees the floor on both sides.
+
+    Hidden lights go behind the wall (`z < 0`); the floor in front (`z > 0`) is lit through the
+    doorways, and the left jamb of each door casts a shadow edge there (thesis 4.3.3).
+    `doors` are `(x0, x1)` openings in metres, the wall runs over `|x| <= extent`.
+
+    **Returns:** `(Setup(scene, camera), edges)` with `edges (len(doors), 2, 3)` the left jambs'
+    front vertical edges, from the floor up.
+    """
+    doors = sorted((float(a), float(b)) for a, b in doors)
+    if any(b <= a for a, b in doors) or any(b0 > a1 for (_, b0), (a1, _) in zip(doors, doors[1:])):
+        raise ValueError(f"doors must be disjoint (x0 < x1) intervals, got {doors}")
+    cuts = [-extent] + [x for door in doors for x in door] + [extent]
+    panels = []
+    for x0, x1 in zip(cuts[::2], cuts[1::2]):
+        if x1 > x0:
+            box = trimesh.creation.box([x1 - x0, wall_height, thickness])
+            box.apply_translation([(x0 + x1) / 2, wall_height / 2, -thickness / 2])
+            panels.append(box)
+    scene = Scene([Surface(ground_plane(3 * extent), 0.8), Surface(trimesh.util.concatenate(panels), 0.5, observe=False)])
+    centre = (doors[0][0] + doors[-1][1]) / 2
+    camera = Camera.look_at([centre, 2.0, 2.4], [centre, 0.0, 0.3], [0.0, 1.0, 0.0], 90.0, width, height)
+    edges = np.array([[[x0, 0.0, 0.0], [x0, wall_height, 0.0]] for x0, _ in doors])
+    return Setup(scene, camera), edges

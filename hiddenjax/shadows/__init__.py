@@ -28,6 +28,12 @@ from ._visibility import soft_visibility as soft_visibility
 from ._fit import LightFit as LightFit
 from ._fit import fit_lights as fit_lights
 from ._shading import ShadowScene as ShadowScene
+from ._projections import Projection as Projection
+from ._projections import angle_span as angle_span
+from ._projections import Reconstruction as Reconstruction
+from ._projections import cell_points as cell_points
+from ._projections import edge_projection as edge_projection
+from ._projections import reconstruct_from_projections as reconstruct_from_projections
 from ._soft_transport import SoftTransport as SoftTransport
 from ._soft_transport import soft_transport_matrix as soft_transport_matrix
 from ._shading import light_images as light_images
