@@ -44,8 +44,6 @@ class ShadowScene(eqx.Module):
         pixels = _observed_pixels(scene, hits, (camera.height, camera.width), 1, mask, False)
         x = hits.position[pixels] + caster.offset * hits.normal[pixels]
         surface = hits.surface[pixels]
-        tri = np.concatenate([s.triangles for s in scene])
-        owner = np.concatenate([np.full(len(s.triangles), k) for k, s in enumerate(scene)])
         planar = [s.planar for s in scene]
         return cls(
             points=jnp.asarray(x, jnp.float32),
@@ -53,7 +51,7 @@ class ShadowScene(eqx.Module):
             albedo=jnp.asarray(hits.albedo[pixels], jnp.float32),
             pixels=jnp.asarray(pixels, jnp.int32),
             receivers=Receivers.from_points(x, surface, planar, tile=tile),
-            occluder=Occluder.from_triangles(tri, owner, cluster=cluster),
+            occluder=Occluder.from_scene(scene, cluster),
             image_shape=(camera.height, camera.width),
             scale=float(np.linalg.norm(np.ptp(x, axis=0))),
         )

@@ -24,7 +24,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..scene import Camera, EnvGrid, Scene
 from ..scene._sampling import stratified_square
-from ..transport._build import _observed_pixels
+from ..transport._build import _observed_pixels, _Points
 from ..transport._embree import RayCaster, primary_hits
 from ..transport._matrix import TransportMatrix
 from ._visibility import DEFAULT_TEMPERATURE, Occluder, Receivers, culled_log_visibility
@@ -72,9 +72,8 @@ class SoftTransport(eqx.Module):
         S = int(pixel_samples)
         hits, _ = primary_hits(caster, camera, S, seed)
         pixels = _observed_pixels(scene, hits, (camera.height, camera.width), S, mask, False)
-        sel = (pixels[:, None] * S + np.arange(S)).reshape(-1)
-        normal = hits.normal[sel]
-        x = hits.position[sel] + caster.offset * normal
+        pts = _Points(hits, (pixels[:, None] * S + np.arange(S)).reshape(-1), caster.offset)
+        normal, x = pts.normal, pts.position
         normals, which = np.unique(normal, axis=0, return_inverse=True)
         which = which.reshape(-1)
         lo, hi = grid.cosine_range(normals)
@@ -82,14 +81,12 @@ class SoftTransport(eqx.Module):
         columns = np.nonzero(np.any(above | straddle, axis=0))[0]
         closed = np.where(above, (normals @ grid.direction_moments().reshape(-1, 3).T)[which], 0.0)
         u = stratified_square(np.random.default_rng([seed, 3]), len(columns), int(samples))
-        tri = np.concatenate([s.triangles for s in scene])
-        owner = np.concatenate([np.full(len(s.triangles), k) for k, s in enumerate(scene)])
         f32 = jnp.float32
         return cls(
-            receivers=Receivers.from_points(x, hits.surface[sel], [s.planar for s in scene], tile=tile),
+            receivers=Receivers.from_points(x, pts.surface, [s.planar for s in scene], tile=tile),
             normals=jnp.asarray(normal, f32),
-            albedo=jnp.asarray(hits.albedo[sel], f32),
-            occluder=Occluder.from_triangles(tri, owner, cluster=cluster),
+            albedo=jnp.asarray(pts.albedo, f32),
+            occluder=Occluder.from_scene(scene, cluster),
             directions=jnp.asarray(grid.sample_directions(columns[:, None], u), f32),
             columns=jnp.asarray(columns, jnp.int32),
             closed=jnp.asarray(closed[:, columns], f32),

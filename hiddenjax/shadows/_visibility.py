@@ -180,6 +180,13 @@ class Occluder(eqx.Module):
                 owner.append(int(s))
         return cls(jnp.asarray(np.stack(blocks)), tuple(owner))
 
+    @classmethod
+    def from_scene(cls, scene, cluster: int = 32) -> "Occluder":
+        """Every surface's triangles of a `Scene`, clustered per surface."""
+        tri = np.concatenate([s.triangles for s in scene])
+        owner = np.concatenate([np.full(len(s.triangles), k) for k, s in enumerate(scene)])
+        return cls.from_triangles(tri, owner, cluster=cluster)
+
     def map_vertices(self, fn, surface: int | None = None) -> "Occluder":
         """Apply `fn (..., 3) -> (..., 3)` (e.g. a rigid pose) to the vertices of one surface or all.
 
