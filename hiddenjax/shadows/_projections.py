@@ -33,6 +33,12 @@ def _wrap(a):
     return np.mod(np.asarray(a) + np.pi, 2 * np.pi) - np.pi
 
 
+def _contiguous(a):
+    """Angles unwrapped about their circular mean (no jump at +-pi inside the set), and that mean."""
+    centre = np.angle(np.mean(np.exp(1j * np.asarray(a))))
+    return centre + _wrap(np.asarray(a) - centre), centre
+
+
 class Projection(NamedTuple):
     """A 1D projection of the hidden scene from one edge.
 
@@ -83,8 +89,7 @@ def angle_span(points, edge) -> tuple[float, float]:
     """
     edge = np.asarray(edge, np.float64)
     a = np.asarray(edge_angle(jnp.asarray(np.asarray(points, np.float64)), jnp.asarray(edge[0]), jnp.asarray(edge[1])))
-    centre = np.angle(np.mean(np.exp(1j * a)))
-    a = centre + _wrap(a - centre)
+    a, _ = _contiguous(a)
     return float(a.min()), float(a.max())
 
 
@@ -119,8 +124,7 @@ def edge_projection(values, points, edge, bins: int = DEFAULT_BINS, theta_range=
         raise ValueError("values and points must be finite (mask out pixels without depth)")
     phi = np.asarray(edge_angle(jnp.asarray(points), jnp.asarray(edge[0]), jnp.asarray(edge[1])), np.float64)
     light = phi - np.pi
-    centre = np.angle(np.mean(np.exp(1j * light)))
-    light = centre + _wrap(light - centre)  # contiguous about the receivers' mean direction
+    light, centre = _contiguous(light)
     if theta_range is None:
         lo, hi = light.min(), light.max()
     else:
