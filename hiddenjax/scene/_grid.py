@@ -147,7 +147,9 @@ class EnvGrid(eqx.Module):
                 lo = np.where(hit, -1.0, lo)
             else:
                 hi = np.where(hit, 1.0, hi)
-        return lo, hi
+        # Round-off (cos(pi/2) = 6e-17) must not make a pixel on the horizon straddle it.
+        snap = lambda v: np.where(np.abs(v) < 1e-12, 0.0, v)
+        return snap(lo), snap(hi)
 
     def direction_to_pixel(self, d):
         """Row and column `(i, j)` (int arrays) of the pixels containing directions `d (..., 3)`."""

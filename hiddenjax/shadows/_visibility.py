@@ -35,6 +35,7 @@ DEFAULT_TEMPERATURE = 100.0
 # A culled triangle's soft indicator is below this at every point of the tile it skips.
 DEFAULT_CULL_TOLERANCE = 1e-10
 _TINY = 1e-30  # floor on s_i: a triangle alone never darkens a point below e^-69
+FADE = 0.02  # triangles within ~1 degree of edge-on to the light fade out (see triangle_log_visibility)
 
 
 def homogeneous(light) -> Float[Array, "*L 4"]:
@@ -92,11 +93,27 @@ def shadow_volume_planes(triangles: Float[Array, "F 3 3"], light: Float[Array, "
 
 
 def triangle_log_visibility(points: Float[Array, "P 3"], triangles: Float[Array, "F 3 3"], light, temperature):
-    """`log(1 - prod_j sigma(T alpha_ij))` for every point and triangle, `(P, F)` (eq. 4.12)."""
+    """`log(1 - g_i prod_j sigma(T alpha_ij))` for every point and triangle, `(P, F)` (eq. 4.12).
+
+    `g_i = min(1, |cos| / FADE)` fades a triangle seen nearly edge-on from the light (`cos`
+    between its normal and the direction to the light). Its volume is then a sliver whose
+    back plane flips side as the triangle turns through edge-on; without the fade the
+    visibility would jump there, and rotations of an occluder would not be differentiable.
+    Such a triangle hides almost nothing (its projected area is `|cos|` times its area).
+    """
+    light = jnp.asarray(light)
     normals, offsets, valid = shadow_volume_planes(triangles, light)
     alpha = jnp.einsum("pc,fjc->pfj", points, normals) - offsets[None]
     s = jnp.sum(jax.nn.softplus(-temperature * alpha), axis=-1)
-    return jnp.where(valid, jnp.log(-jnp.expm1(-jnp.maximum(s, _TINY))), 0.0)
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    n = jnp.cross(b - a, c - a)
+    to_light = light[None, :3] - light[3] * a
+    scale = jnp.linalg.norm(n, axis=-1) * jnp.linalg.norm(to_light, axis=-1)
+    cos = jnp.abs(jnp.sum(n * to_light, axis=-1)) / jnp.where(valid, scale, 1.0)
+    fade = jnp.minimum(cos / FADE, 1.0)
+    # 1 - g e^-s, written so that g = 1 keeps the e^-69 floor of s >= _TINY.
+    fade = fade[None]
+    return jnp.where(valid[None], jnp.log((1.0 - fade) - fade * jnp.expm1(-jnp.maximum(s, _TINY))), 0.0)
 
 
 def log_visibility(points, triangles, light, temperature=DEFAULT_TEMPERATURE, *, chunk: int = 128):
@@ -235,6 +252,18 @@ class Receivers(eqx.Module):
         radius = np.linalg.norm(p - centre[:, None], axis=-1).max(axis=1)
         return cls(jnp.asarray(p), jnp.asarray(order.reshape(-1), jnp.int32), jnp.asarray(labels[slot]),
                    jnp.asarray(centre), jnp.asarray(radius), len(pts), tuple(bool(b) for b in planar))
+
+    def map_points(self, fn) -> "Receivers":
+        """Apply `fn (T, B, 3) -> (T, B, 3)` to the points (e.g. slide them as a camera moves).
+
+        The tile bounds are recomputed from the moved points (outside the derivative), so the
+        culling test stays conservative.
+        """
+        points = jnp.asarray(fn(self.points))
+        p = jax.lax.stop_gradient(points)
+        centre = (p.min(axis=1) + p.max(axis=1)) / 2
+        radius = jnp.linalg.norm(p - centre[:, None], axis=-1).max(axis=1)
+        return eqx.tree_at(lambda r: (r.points, r.centre, r.radius), self, (points, centre, radius))
 
     def scatter(self, values: Float[Array, "T B"]) -> Float[Array, " P"]:
         """Tile values back to the caller's point order."""
