@@ -1,4 +1,4 @@
-"""Solvers for the illumination (and, later, albedo and scene parameters): pure JAX, jit and vmap."""
+"""Solvers for the illumination, albedo and scene parameters: pure JAX, jit and vmap."""
 
 from ._illumination import DEFAULT_RIDGE as DEFAULT_RIDGE
 from ._illumination import DEFAULT_SMOOTH as DEFAULT_SMOOTH
@@ -16,3 +16,13 @@ from ._adam import AdamSolution as AdamSolution
 from ._adam import solve_illumination_adam as solve_illumination_adam
 from ._adam import AdamProblem as AdamProblem
 from ._weights import choose_weights as choose_weights
+from ._scene_params import SceneParams as SceneParams
+from ._scene_params import SceneUncertainty as SceneUncertainty
+from ._scene_model import SceneModel as SceneModel
+from ._robust import GaussNewtonStep as GaussNewtonStep
+from ._robust import SceneSolution as SceneSolution
+from ._robust import gauss_newton_step as gauss_newton_step
+from ._robust import jacobian_gram as jacobian_gram
+from ._robust import model_average as model_average
+from ._robust import solve_scene_illumination as solve_scene_illumination
+from ._robust import taylor_operator as taylor_operator

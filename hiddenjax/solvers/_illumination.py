@@ -120,9 +120,21 @@ class IlluminationOperator(eqx.Module):
     def build(cls, T, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, absolute: bool = False):
         """From a `TransportMatrix` or a sequence of them (several viewpoints)."""
         Ts = views(T)
+        return cls.from_gram(Ts, sum(t.A.T @ t.A for t in Ts), smooth, ridge, absolute)
+
+    @classmethod
+    def from_gram(cls, T, gram, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, absolute: bool = False):
+        """With `gram (N, N)` in place of `sum_v A_v^T A_v`; the right-hand side stays `sum_v A_v^T y`.
+
+        For model averaging (eq. A.6: `T` holds the mean matrix, `gram` the mean of `A_i^T A_i`)
+        and the Taylor regularizer (eq. A.9: `gram = A^T A + sum_i sigma_i^2 A'_i^T A'_i`).
+        Relative weights scale with `mean(diag(A^T A))` of `T`'s own matrices, as in `build`,
+        so the prior is the same one the plain solve uses.
+        """
+        Ts = views(T)
         _check_weights(smooth, ridge)
         ls, lr = regularization_weights(Ts, smooth, ridge, absolute)
-        B = normal_matrix(Ts, ls, lr)
+        B = gram + prior_matrix(Ts[0].grid, ls, lr, Ts[0].A.dtype)
         factor = jnp.linalg.cholesky(B)
         factor = eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)),
                               "A^T A + smooth D^T D + ridge I is not positive definite in this precision: the "

@@ -1,0 +1,163 @@
+"""`A(theta)`: the transport matrix as a differentiable function of the scene parameters.
+
+Built on the sigmoid shadow-volume transport (`hj.shadows.SoftTransport`). For `SceneParams`
+`theta`: the object's triangles move rigidly about the pivot; a camera move slides every
+footprint point along its (planar) receiver to where the moved pixel ray meets it,
+`p' = o' + d' (n.(p - o')) / (n.d')` with `o' = o + dt`, `d' = R (p - o)`; the albedo change
+scales every row. `perturb` applies the same `theta` to a `Scene` and `Camera`, for the Embree
+builder (the exact, non-differentiable path). Rows are a fixed mask, shrunk by `margin` pixels
+away from the object's silhouette, so that small moves never change which surface a row sees.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.ndimage
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Bool, Float
+
+from ..scene import Camera, EnvGrid, Scene, Surface
+from ..shadows import SoftTransport
+from ..transport import TransportMatrix
+from ..transport._build import _observed_pixels
+from ..transport._embree import RayCaster, primary_hits
+from ._scene_params import SceneParams, SceneUncertainty, rotation_matrix
+
+DEFAULT_TEMPERATURE = 1000.0  # 1/m: soft edges ~4 mm wide, about one pixel of the 32x32 teapot fixture
+DEFAULT_TOLERANCE = 1e-4
+
+
+class SceneModel(eqx.Module):
+    """`A(theta)` for one moving object, uncertain albedo and camera pose (pure JAX after `from_scene`).
+
+    **Fields:** `soft` the `SoftTransport` of the modelled scene; `slot_normals (T, B, 3)` the
+    receiver normals in its tile layout; `origin (3,)` the camera centre; `pivot (3,)`;
+    `temperature`; `surface` (static) the index of the moving object; `mask (H, W)` the rows.
+    """
+
+    soft: SoftTransport
+    slot_normals: Float[Array, "T B 3"]
+    origin: Float[Array, "3"]
+    pivot: Float[Array, "3"]
+    temperature: Float[Array, ""]
+    mask: Bool[Array, "H W"]
+    surface: int = eqx.field(static=True)
+    tolerance: float = eqx.field(static=True, default=DEFAULT_TOLERANCE)
+
+    @classmethod
+    def from_scene(cls, scene: Scene, camera: Camera, grid: EnvGrid, surface: int | None = None, *,
+                   samples: int = 4, pixel_samples: int = 1, mask=None, margin: int = 2, seed: int = 0,
+                   temperature: float = DEFAULT_TEMPERATURE, tolerance: float = DEFAULT_TOLERANCE) -> "SceneModel":
+        """The model of `scene` seen by `camera`; `surface` is the moving object (default: the one
+        surface with `observe=False`). The rows are `mask` (default: the observed pixels) minus
+        the pixels within `margin` pixels of the object's silhouette. Receivers must be planar
+        for camera moves (`theta.camera_*`); the object may be any mesh.
+        """
+        if surface is None:
+            hidden = [k for k, s in enumerate(scene) if not s.observe]
+            if len(hidden) != 1:
+                raise ValueError(f"pass surface=: the scene has {len(hidden)} surfaces with observe=False, "
+                                 "and the moving object cannot be guessed")
+            surface = hidden[0]
+        if not 0 <= surface < len(scene):
+            raise ValueError(f"surface must index the scene's {len(scene)} surfaces, got {surface}")
+        if not isinstance(margin, (int, np.integer)) or margin < 0:
+            raise ValueError(f"margin must be an integer number of pixels >= 0, got {margin!r}")
+        caster = RayCaster(scene)
+        hits, _ = primary_hits(caster, camera, 1, seed)
+        shape = (camera.height, camera.width)
+        observed = np.zeros(camera.height * camera.width, bool)
+        observed[_observed_pixels(scene, hits, shape, 1, None, False)] = True
+        observed = observed.reshape(shape)
+        near = scipy.ndimage.binary_dilation(~observed, iterations=margin) if margin else ~observed
+        rows = ~near if mask is None else np.asarray(mask, bool) & ~near
+        if not rows.any():
+            raise ValueError(f"no pixel is left in the mask with margin={margin}: lower margin or pass a larger mask")
+        soft = SoftTransport.from_scene(scene, camera, grid, samples, pixel_samples, rows, seed)
+        rec = soft.receivers
+        order = np.asarray(rec.order).reshape(rec.points.shape[:2])
+        slot = np.where(order >= 0, order, order[:, :1])
+        lo, hi = scene[surface].triangles.reshape(-1, 3).min(0), scene[surface].triangles.reshape(-1, 3).max(0)
+        return cls(soft=soft, slot_normals=soft.normals[jnp.asarray(slot)],
+                   origin=jnp.asarray(camera.origin, jnp.float32), pivot=jnp.asarray((lo + hi) / 2, jnp.float32),
+                   temperature=jnp.asarray(temperature, jnp.float32), mask=jnp.asarray(rows), surface=int(surface),
+                   tolerance=float(tolerance))
+
+    @property
+    def grid(self) -> EnvGrid:
+        return self.soft.grid
+
+    def image_to_rows(self, image):
+        """The model's rows `(P[, C])` of an image `(H, W[, C])`."""
+        image = jnp.asarray(image)
+        if image.shape[:2] != self.soft.image_shape:
+            raise ValueError(f"image shape {image.shape} does not match the model's image {self.soft.image_shape}")
+        return image.reshape((-1,) + image.shape[2:])[self.soft.pixels]
+
+    def matrix(self, theta: SceneParams) -> Float[Array, "P N"]:
+        """`A(theta) (P, N)`; differentiate with forward mode (`jax.jvp`, see `jacobian`)."""
+        R, c = rotation_matrix(theta.rotation), self.pivot
+        occluder = self.soft.occluder.map_vertices(lambda v: (v - c[None]) @ R.T + (c + theta.translation)[None], self.surface)
+        Rc, o = rotation_matrix(theta.camera_rotation), self.origin
+        o_new = o + theta.camera_translation
+
+        def slide(p):  # the moved pixel ray meets the receiver's plane
+            d = (p - o[None, None]) @ Rc.T
+            n = self.slot_normals
+            return o_new[None, None] + d * (jnp.sum(n * (p - o_new[None, None]), -1) / jnp.sum(n * d, -1))[..., None]
+
+        soft = eqx.tree_at(lambda s: s.receivers, self.soft, self.soft.receivers.map_points(slide))
+        return (1 + theta.albedo) * soft.matrix(occluder, self.temperature, self.tolerance)
+
+    def transport(self, theta: SceneParams) -> TransportMatrix:
+        """`matrix(theta)` as a `TransportMatrix` (the rows of `mask`)."""
+        T = self.soft.transport(None, self.temperature, self.tolerance)
+        return eqx.tree_at(lambda t: t.A, T, self.matrix(theta))
+
+    def jacobian(self, theta: SceneParams, x, uncertainty: SceneUncertainty):
+        """`(A(theta) x (P[, C]), T_x (P*C, n))`: `T_x[:, i] = sigma_i d(A(theta) x)/d theta_i`, free entries.
+
+        Forward mode, one JVP per free entry (vmapped), never a dense `dA/dtheta`. The columns are
+        one standard deviation long (the whitened Jacobian of eq. A.10).
+        """
+        x = jnp.asarray(x)
+        x = x.reshape((self.grid.size,) + x.shape[2:]) if x.shape[:2] == self.grid.shape else x  # (N[, C])
+        flat, unravel = ravel_pytree(theta)
+        render = lambda f: self.matrix(unravel(f)) @ x
+        jvp = lambda v: jax.jvp(render, (flat,), (v,))
+        values, columns = jax.vmap(jvp)(uncertainty.basis().astype(flat.dtype))
+        return values[0], columns.reshape(columns.shape[0], -1).T
+
+    def perturb(self, scene: Scene, camera: Camera, theta: SceneParams) -> tuple[Scene, Camera]:
+        """`(scene, camera)` moved by `theta` (numpy, for `hj.transport_matrix` or `hj.reference_render`).
+
+        Build Embree matrices of the moved scene with `mask=model.mask` so their rows match.
+        """
+        t = {k: np.asarray(v, np.float64) for k, v in
+             zip(("t", "r", "a", "ct", "cr"), (theta.translation, theta.rotation, theta.albedo,
+                                                theta.camera_translation, theta.camera_rotation))}
+        R = np.asarray(rotation_matrix(jnp.asarray(t["r"])), np.float64)
+        c = np.asarray(self.pivot, np.float64)
+        surfaces = []
+        for k, s in enumerate(scene):
+            mesh = s.mesh
+            if k == self.surface:
+                mesh = mesh.copy()
+                mesh.vertices = (np.asarray(mesh.vertices) - c) @ R.T + c + t["t"]
+            albedo = s.albedo * (1 + float(t["a"])) if s.observe else s.albedo
+            if np.any(albedo > 1) or np.any(albedo < 0):
+                raise ValueError(f"albedo change {float(t['a']):+.3g} takes surface {k}'s albedo outside [0, 1]")
+            surfaces.append(Surface(mesh, albedo, observe=s.observe))
+        Rc = np.asarray(rotation_matrix(jnp.asarray(t["cr"])), np.float64)
+        R_w2c = np.asarray(camera.rotation, np.float64) @ Rc.T
+        origin = np.asarray(camera.origin, np.float64) + t["ct"]
+        moved = Camera._from_matrices(_intrinsic_matrix(camera), R_w2c, -R_w2c @ origin, camera.width, camera.height)
+        return Scene(surfaces), moved
+
+
+def _intrinsic_matrix(camera: Camera) -> np.ndarray:
+    fx, fy, cx, cy = np.asarray(camera.intrinsics, np.float64)
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
