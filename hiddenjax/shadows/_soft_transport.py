@@ -142,7 +142,10 @@ class SoftTransport(eqx.Module):
     def transport(self, occluder: Occluder | None = None, temperature=DEFAULT_TEMPERATURE,
                   tolerance: float = DEFAULT_CULL_TOLERANCE) -> TransportMatrix:
         """`matrix` wrapped as a `TransportMatrix` (same pixels and layout as the Embree one)."""
-        A = self.matrix(occluder, temperature, tolerance)
+        return self.wrap(self.matrix(occluder, temperature, tolerance))
+
+    def wrap(self, A) -> TransportMatrix:
+        """A `(P, N)` matrix on these rows as a `TransportMatrix`."""
         albedo = self.albedo.reshape(-1, self.pixel_samples).mean(axis=1)
         return TransportMatrix(A=A, albedo=albedo, pixels=self.pixels, grid=self.grid,
                                image_shape=self.image_shape, samples=self.samples,

@@ -56,8 +56,8 @@ def model_average(source, thetas: SceneParams, weights=None, smooth=DEFAULT_SMOO
     if p.shape != (count,):
         raise ValueError(f"weights must be ({count},), one per sample, got {p.shape}")
     if isinstance(source, SceneModel):
-        T = source.transport(SceneParams.zeros())
-        P, N = T.A.shape
+        P, N = source.soft.pixels.shape[0], source.grid.size
+        T = source.soft.wrap(jnp.zeros((P, N), jnp.float32))
         pad = -count % batch
         take = lambda a: jnp.concatenate([a, jnp.repeat(a[:1], pad, 0)]).reshape((-1, batch) + a.shape[1:])
         xs = (jax.tree_util.tree_map(take, thetas), jnp.concatenate([p, jnp.zeros(pad, p.dtype)]).reshape(-1, batch))  # padding weighs 0
@@ -108,7 +108,7 @@ def taylor_operator(model: SceneModel, theta: SceneParams, uncertainty: SceneUnc
     matrix of the same rows for a more accurate `A`); the derivatives come from the soft model.
     """
     T = model.transport(theta) if transport is None else transport
-    if T.A.shape[0] != int(jnp.sum(model.mask)):
+    if T.A.shape[0] != model.soft.pixels.shape[0]:
         raise ValueError("transport must have the model's rows: build it with mask=model.mask")
     return IlluminationOperator.from_gram(T, T.A.T @ T.A + jacobian_gram(model, theta, uncertainty),
                                           smooth, ridge, absolute)

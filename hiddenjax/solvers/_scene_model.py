@@ -112,8 +112,7 @@ class SceneModel(eqx.Module):
 
     def transport(self, theta: SceneParams) -> TransportMatrix:
         """`matrix(theta)` as a `TransportMatrix` (the rows of `mask`)."""
-        T = self.soft.transport(None, self.temperature, self.tolerance)
-        return eqx.tree_at(lambda t: t.A, T, self.matrix(theta))
+        return self.soft.wrap(self.matrix(theta))
 
     def jacobian(self, theta: SceneParams, x, uncertainty: SceneUncertainty):
         """`(A(theta) x (P[, C]), T_x (P*C, n))`: `T_x[:, i] = sigma_i d(A(theta) x)/d theta_i`, free entries.
