@@ -182,9 +182,9 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     `transport(theta)` the matrix for the illumination solve (default the soft `model.transport`;
     an Embree build of `model.perturb(...)` with `mask=model.mask` is more accurate), the
     derivatives always come from the soft model; `learning_rate` scales each step (the thesis
-    suggests `<< 1`; 0.5 converges on the teapot fixture); stops after `steps` or once the whitened step is shorter
-    than `tol` standard deviations. Each step costs one `transport` and one linearization with
-    `n` forward derivatives (the free parameters).
+    suggests `<< 1`); stops after `steps` or once the whitened step is shorter than `tol`
+    standard deviations. Each step costs one `transport` and one linearization with `n` forward
+    derivatives (the free parameters). Pose recovery is not yet demonstrated (README).
     """
     mean = SceneParams.zeros() if mean is None else mean
     theta = mean if theta is None else theta

@@ -133,30 +133,21 @@ class SceneModel(eqx.Module):
 
         Build Embree matrices of the moved scene with `mask=model.mask` so their rows match.
         """
-        t = {k: np.asarray(v, np.float64) for k, v in
-             zip(("t", "r", "a", "ct", "cr"), (theta.translation, theta.rotation, theta.albedo,
-                                                theta.camera_translation, theta.camera_rotation))}
-        R = np.asarray(rotation_matrix(jnp.asarray(t["r"])), np.float64)
-        c = np.asarray(self.pivot, np.float64)
+        f64 = lambda v: np.asarray(v, np.float64)
+        R, c, a = f64(rotation_matrix(theta.rotation)), f64(self.pivot), float(theta.albedo)
         surfaces = []
         for k, s in enumerate(scene):
             mesh = s.mesh
             if k == self.surface:
                 mesh = mesh.copy()
-                mesh.vertices = (np.asarray(mesh.vertices) - c) @ R.T + c + t["t"]
-            albedo = s.albedo * (1 + float(t["a"])) if s.observe else s.albedo
+                mesh.vertices = (f64(mesh.vertices) - c) @ R.T + c + f64(theta.translation)
+            albedo = s.albedo * (1 + a) if s.observe else s.albedo
             if np.any(albedo > 1) or np.any(albedo < 0):
-                raise ValueError(f"albedo change {float(t['a']):+.3g} takes surface {k}'s albedo outside [0, 1]")
+                raise ValueError(f"albedo change {a:+.3g} takes surface {k}'s albedo outside [0, 1]")
             surfaces.append(Surface(mesh, albedo, observe=s.observe))
-        Rc = np.asarray(rotation_matrix(jnp.asarray(t["cr"])), np.float64)
-        R_w2c = np.asarray(camera.rotation, np.float64) @ Rc.T
-        origin = np.asarray(camera.origin, np.float64) + t["ct"]
-        moved = Camera._from_matrices(_intrinsic_matrix(camera), R_w2c, -R_w2c @ origin, camera.width, camera.height)
+        R_w2c = f64(camera.rotation) @ f64(rotation_matrix(theta.camera_rotation)).T
+        origin = f64(camera.origin) + f64(theta.camera_translation)
+        moved = eqx.tree_at(lambda cam: (cam.rotation, cam.translation), camera,
+                            (jnp.asarray(R_w2c, jnp.float32), jnp.asarray(-R_w2c @ origin, jnp.float32)))
         return Scene(surfaces), moved
-
-
-def _intrinsic_matrix(camera: Camera) -> np.ndarray:
-    fx, fy, cx, cy = np.asarray(camera.intrinsics, np.float64)
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-
 
