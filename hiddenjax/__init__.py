@@ -9,6 +9,7 @@ from . import metrics as metrics
 from . import solvers as solvers
 from . import scene as scenes
 from . import shadows as shadows
+from .io import load_scene as load_scene
 from .scene import Camera as Camera
 from .scene import EnvGrid as EnvGrid
 from .scene import Scene as Scene

@@ -24,3 +24,9 @@ def atomic_path(path):
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
         raise
+
+
+def write_text(path, text: str) -> None:
+    """Write a text file atomically (`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)

@@ -1,4 +1,4 @@
-"""Radiance .hdr and 8-bit PNG images, tone mapping and colour maps."""
+"""Radiance .hdr, PNG/TIFF/JPEG images, reading and writing by file suffix, tone mapping, colour maps."""
 
 from pathlib import Path
 
@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from .._files import atomic_path
-from ._exr import _check_image
+from ._exr import _check_image, read_exr, write_exr
 
 
 def read_hdr(path) -> np.ndarray:
@@ -78,3 +78,61 @@ def _imwrite(path, bgr) -> None:
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), bgr):
             raise ValueError(f"OpenCV could not write {path}; check the extension")
+
+
+HDR_SUFFIXES = (".exr", ".hdr")
+LDR_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
+
+
+def srgb_to_linear(v) -> np.ndarray:
+    """The sRGB transfer curve inverted (IEC 61966-2-1): display values in `[0, 1]` -> linear."""
+    v = np.asarray(v, dtype=np.float64)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def read_image(path, srgb: bool = False) -> np.ndarray:
+    """Read an image as float32 `(H, W)` or `(H, W, 3)` RGB, by suffix.
+
+    `.exr` and `.hdr` hold linear radiance and are returned as stored. 8- and 16-bit PNG, TIFF
+    and JPEG are scaled to `[0, 1]` (float TIFFs are kept as stored); with `srgb=True` they are
+    linearized through the sRGB curve (use it for photos saved by ordinary software; raw or
+    linear captures need `srgb=False`). Alpha is dropped.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in HDR_SUFFIXES + LDR_SUFFIXES:
+        raise ValueError(
+            f"{path}: unknown image type {suffix!r}; use one of {', '.join(HDR_SUFFIXES + LDR_SUFFIXES)}"
+        )
+    if suffix == ".exr":
+        return read_exr(path)
+    if suffix == ".hdr":
+        return read_hdr(path)
+    if not path.is_file():
+        raise ValueError(f"image file not found: {path}")
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise ValueError(f"cannot read {path} as a {suffix[1:].upper()} image")
+    if raw.ndim == 3:
+        raw = raw[..., [2, 1, 0]] if raw.shape[2] >= 3 else raw[..., 0]
+    if raw.dtype == np.uint8:
+        a = raw / 255.0
+    elif raw.dtype == np.uint16:
+        a = raw / 65535.0
+    elif raw.dtype.kind == "f":
+        a = raw.astype(np.float64)
+    else:
+        raise ValueError(f"{path}: unsupported pixel type {raw.dtype}; save it as 8/16-bit or float")
+    if srgb:
+        a = srgb_to_linear(a)
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def write_image(path, array) -> None:
+    """Write linear radiance by suffix: `.exr` (float32, signed allowed), `.hdr` (RGBE, >= 0), or
+    `.png` (tone-mapped 8-bit display image, `write_png`)."""
+    suffix = Path(path).suffix.lower()
+    writers = {".exr": write_exr, ".hdr": write_hdr, ".png": write_png}
+    if suffix not in writers:
+        raise ValueError(f"{path}: cannot write {suffix or 'no suffix'!r}; use .exr, .hdr or .png")
+    writers[suffix](path, array)

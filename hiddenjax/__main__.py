@@ -1,0 +1,7 @@
+"""`python -m hiddenjax` runs the `hiddenjax` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

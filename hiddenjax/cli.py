@@ -1,0 +1,300 @@
+"""The `hiddenjax` command: build a transport matrix, solve for the light, render, map the cues, demo.
+
+    hiddenjax transport SCENE.toml -o A.npz
+    hiddenjax solve A.npz photo.exr -o env.exr [--png env.png] [--smooth S] [--ridge R] [--signed]
+    hiddenjax render A.npz env.exr -o image.exr
+    hiddenjax cues A.npz [--image photo.exr] -o cues/
+    hiddenjax demo [--quick] [--out DIR]
+
+Exit status 0 on success, 1 when the input is bad (one line on stderr says what and how to fix
+it; no output file is left behind), 2 for a malformed command line.
+"""
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import cues as _cues
+from . import io
+from . import metrics
+from .scene import EnvGrid, object_on_plane, procedural_sky
+from .solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator
+from .transport import TransportMatrix, reference_render, render, transport_matrix
+
+IMAGE_HELP = "EXR or Radiance HDR (linear), or 8/16-bit PNG/TIFF/JPEG (see --srgb)"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a bad command line in one line (and the `--help` hint)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _output(path, suffixes) -> Path:
+    """Check an output path before any work: known suffix, existing folder."""
+    path = Path(path)
+    if path.suffix.lower() not in suffixes:
+        raise ValueError(f"output {path}: use one of the suffixes {', '.join(suffixes)}")
+    if not path.parent.is_dir():
+        raise ValueError(f"output folder {path.parent} does not exist; create it first")
+    return path
+
+
+def _load_matrix(path) -> TransportMatrix:
+    if not Path(path).is_file():
+        raise ValueError(f"transport matrix not found: {path} (build one with `hiddenjax transport SCENE -o {path}`)")
+    return TransportMatrix.load(path)
+
+
+def _load_photo(path, T: TransportMatrix, srgb: bool) -> np.ndarray:
+    image = io.read_image(path, srgb=srgb)
+    if image.shape[:2] != T.image_shape:
+        raise ValueError(
+            f"{path} is {image.shape[1]}x{image.shape[0]} pixels but the transport matrix was built for a "
+            f"{T.image_shape[1]}x{T.image_shape[0]} camera; use the photo the scene file describes"
+        )
+    if not np.all(np.isfinite(image)):
+        raise ValueError(f"{path} contains NaN or infinite pixels; fix or mask them first")
+    return image
+
+
+def _env_on_grid(env: np.ndarray, grid: EnvGrid, path) -> np.ndarray:
+    """An env map on `grid`: as given, or area-averaged from a full-resolution lat-long panorama."""
+    if env.shape[:2] == grid.shape:
+        return env
+    if env.shape[1] == 2 * env.shape[0]:
+        return grid.downsample(env)
+    raise ValueError(
+        f"{path} is {env.shape[1]}x{env.shape[0]}: neither the matrix's {grid.width}x{grid.height} grid nor a "
+        "lat-long panorama (width = 2 x height)"
+    )
+
+
+def transport(args) -> dict:
+    """`hiddenjax transport`: the Embree transport matrix of a scene file."""
+    out = _output(args.output, (".npz",))
+    spec = io.load_scene(args.scene)
+    options = dict(spec.transport)
+    for key in ("samples", "pixel_samples", "seed"):
+        if getattr(args, key) is not None:
+            options[key] = getattr(args, key)
+    t0 = time.perf_counter()
+    T = transport_matrix(spec.scene, spec.camera, spec.grid, progress=not args.quiet, **options)
+    seconds = time.perf_counter() - t0
+    T.save(out)
+    P, N = T.A.shape
+    print(f"wrote {out}: A is {P} observed pixels x {N} directions ({T.A.nbytes / 2**20:.1f} MiB), {seconds:.1f} s")
+    return dict(pixels=P, directions=N, seconds=seconds)
+
+
+def solve(args) -> dict:
+    """`hiddenjax solve`: the environment map of one photo (eq. 5.3)."""
+    out = _output(args.output, (".exr", ".hdr"))
+    png = _output(args.png, (".png",)) if args.png else None
+    if args.signed and out.suffix.lower() == ".hdr":
+        raise ValueError("a signed (--signed) map has negative values; write it as .exr, not .hdr")
+    T = _load_matrix(args.matrix)
+    image = _load_photo(args.image, T, args.srgb)
+    t0 = time.perf_counter()
+    operator = IlluminationOperator.build(T, args.smooth, args.ridge, args.absolute)
+    solution = operator.solve(image, nonneg=not args.signed, throw=False)
+    env = np.asarray(solution.env)
+    seconds = time.perf_counter() - t0
+    kkt = float(np.max(solution.kkt_residual))
+    if not np.all(np.isfinite(env)):
+        raise ValueError("the solve produced non-finite values; raise --ridge (the problem is singular)")
+    io.write_image(out, env)
+    if png and args.signed:
+        io.write_map(png, env if env.ndim == 2 else env.mean(axis=-1), signed=True)
+    elif png:
+        io.write_png(png, env)
+    if kkt > 1e-3:
+        print(f"warning: the solve did not reach its optimality conditions (KKT residual {kkt:.2g})", file=sys.stderr)
+    print(f"wrote {out}: {T.grid.height}x{T.grid.width} env map, {seconds:.2f} s, KKT residual {kkt:.1e}")
+    return dict(seconds=seconds, kkt_residual=kkt)
+
+
+def render_image(args) -> dict:
+    """`hiddenjax render`: the image `A x` of an env map."""
+    out = _output(args.output, (".exr", ".hdr", ".png"))
+    T = _load_matrix(args.matrix)
+    env = io.read_image(args.env, srgb=args.srgb)
+    image = np.asarray(render(T, _env_on_grid(env, T.grid, args.env)))
+    io.write_image(out, image)
+    print(f"wrote {out}: {image.shape[1]}x{image.shape[0]} image")
+    return dict(shape=list(image.shape))
+
+
+def cues(args) -> dict:
+    """`hiddenjax cues`: leverage, uncertainty and (with a photo) Cook's distance maps (thesis ch. 6)."""
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output {out} exists and is not a folder")
+    T = _load_matrix(args.matrix)
+    image = _load_photo(args.image, T, args.srgb) if args.image else None
+    out.mkdir(parents=True, exist_ok=True)
+    return _write_cues(out, T, image, args.ridge)
+
+
+def _write_cues(out: Path, T: TransportMatrix, image, ridge) -> dict:
+    mask = np.asarray(T.mask)
+    linear = _cues.LinearCues.build(T, ridge=ridge)
+    maps = {
+        "leverage": (np.where(mask, np.asarray(T.rows_to_image(linear.leverage())), np.nan), 1.0),
+        "uncertainty": (np.asarray(linear.uncertainty()), 1.0),
+    }
+    if image is not None:
+        grey = image.mean(axis=-1) if image.ndim == 3 else image  # Cook's distance of the grey photo
+        cook = np.asarray(linear.cooks_distance(grey))
+        maps["cooks_distance"] = (np.where(mask, np.asarray(T.rows_to_image(cook)), np.nan), 0.5)
+    summary = {}
+    for name, (value, gamma) in maps.items():
+        io.write_exr(out / f"{name}.exr", np.nan_to_num(value))
+        io.write_map(out / f"{name}.png", value, gamma=gamma)
+        summary[name] = dict(mean=float(np.nanmean(value)), max=float(np.nanmax(value)))
+    print(f"wrote {', '.join(maps)} to {out}/ (EXR values, PNG pictures)")
+    return summary
+
+
+def demo(args) -> dict:
+    """`hiddenjax demo`: the README's main job on the bundled teapot (transport, photo, solve, cues, sheet)."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    size, grid = (64, EnvGrid(16, 32)) if args.quick else (128, EnvGrid(32, 64))
+    samples, pixel_samples, photo_samples = (8, 1, 64) if args.quick else (16, 4, 512)
+    setup = object_on_plane(args.mesh, width=size, height=size)
+    sky = procedural_sky(128, 256) if args.quick else procedural_sky(256, 512)
+    truth = grid.downsample(sky)
+
+    t0 = time.perf_counter()
+    T = transport_matrix(setup.scene, setup.camera, grid, samples=samples, pixel_samples=pixel_samples,
+                         progress=not args.quiet)
+    t_transport = time.perf_counter() - t0
+    T.save(out / "A.npz")
+    # The photo comes from the independent renderer under the full-resolution sky, never from A.
+    photo = reference_render(setup.scene, setup.camera, sky, samples=photo_samples, seed=1)
+    t0 = time.perf_counter()
+    solution = IlluminationOperator.build(T).solve(photo)
+    env = np.asarray(solution.env)
+    t_solve = time.perf_counter() - t0
+    io.write_exr(out / "photo.exr", photo)
+    io.write_exr(out / "env.exr", env)
+    io.write_exr(out / "truth.exr", truth)
+    t0 = time.perf_counter()
+    cue_summary = _write_cues(out, T, photo, DEFAULT_RIDGE)
+    t_cues = time.perf_counter() - t0
+
+    mask = np.asarray(T.mask)
+    white = float(np.percentile(truth, 99))
+    io.contact_sheet(
+        out / "demo.png",
+        [
+            ("photo", photo, "radiance"),
+            ("what the teapot saw", env, "radiance", white),
+            (f"truth ({grid.height}x{grid.width})", truth, "radiance", white),
+            ("|estimate - truth|", np.abs(env - truth).mean(axis=2), "map"),
+            ("leverage", io.read_exr(out / "leverage.exr") + np.where(mask, 0, np.nan), "map"),
+            ("Cook's distance^0.5", np.sqrt(io.read_exr(out / "cooks_distance.exr")) + np.where(mask, 0, np.nan), "map"),
+            ("uncertainty (env)", io.read_exr(out / "uncertainty.exr"), "map"),
+        ],
+        height=160,
+        columns=4,
+    )
+    results = dict(
+        config=dict(quick=args.quick, mesh=args.mesh, image=size, grid=list(grid.shape), samples=samples,
+                    pixel_samples=pixel_samples, photo_samples=photo_samples),
+        seconds=dict(transport=round(t_transport, 2), solve=round(t_solve, 2), cues=round(t_cues, 2)),
+        env_errors={k: round(v, 4) for k, v in metrics.env_errors(env, truth).items()},
+        kkt_residual=float(np.max(solution.kkt_residual)),
+        cues=cue_summary,
+    )
+    io.write_text(out / "results.json", json.dumps(results, indent=2))
+    print(f"wrote {out}/demo.png and the EXR/PNG files beside it; env-map errors {results['env_errors']}")
+    return results
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="hiddenjax", description=__doc__.split("\n\n")[0],
+                     epilog="Images: " + IMAGE_HELP + ". Run `hiddenjax COMMAND --help` for each command.")
+    parser.add_argument("--version", action="version", version="hiddenjax 0.1.0")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser, metavar="COMMAND")
+
+    p = sub.add_parser("transport", help="build the transport matrix A of a scene file (Embree)",
+                       description="Build the ray transport matrix A of a TOML scene file and save it as .npz.")
+    p.add_argument("scene", help="TOML scene file (schema in the README)")
+    p.add_argument("-o", "--output", required=True, help="output .npz")
+    p.add_argument("--samples", type=int, help="directions per env pixel (overrides the scene file)")
+    p.add_argument("--pixel-samples", type=int, help="footprint samples per pixel (overrides the scene file)")
+    p.add_argument("--seed", type=int, help="random seed (overrides the scene file)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(run=transport)
+
+    def photo_options(p):
+        p.add_argument("--srgb", action="store_true", help="linearize 8/16-bit images from sRGB")
+
+    p = sub.add_parser("solve", help="recover the environment map from one photo (eq. 5.3)",
+                       description="Recover the environment map x >= 0 (or signed, --signed) from one photo: "
+                                   "min ||Ax-y||^2 + smooth ||Dx||^2 + ridge ||x||^2 (weights relative to mean diag A^T A).")
+    p.add_argument("matrix", help="transport matrix .npz (hiddenjax transport)")
+    p.add_argument("image", help="the photo: " + IMAGE_HELP)
+    p.add_argument("-o", "--output", required=True, help="output env map, .exr or .hdr")
+    p.add_argument("--png", help="also write a tone-mapped PNG of the map")
+    p.add_argument("--smooth", type=float, default=DEFAULT_SMOOTH, help=f"smoothness weight (default {DEFAULT_SMOOTH})")
+    p.add_argument("--ridge", type=float, default=DEFAULT_RIDGE, help=f"ridge weight (default {DEFAULT_RIDGE})")
+    p.add_argument("--absolute", action="store_true", help="weights are absolute, not relative")
+    p.add_argument("--signed", action="store_true", help="no x >= 0 (a differential map from subtracted frames)")
+    photo_options(p)
+    p.set_defaults(run=solve)
+
+    p = sub.add_parser("render", help="render the image A x of an env map",
+                       description="Render A x; ENV is on the matrix's grid or a full-resolution lat-long panorama.")
+    p.add_argument("matrix", help="transport matrix .npz")
+    p.add_argument("env", help="env map: " + IMAGE_HELP)
+    p.add_argument("-o", "--output", required=True, help="output image, .exr, .hdr or .png")
+    photo_options(p)
+    p.set_defaults(run=render_image)
+
+    p = sub.add_parser("cues", help="leverage, uncertainty and Cook's distance maps (thesis ch. 6)",
+                       description="Which pixels carry the information: leverage (eq. 6.2) and the env-map "
+                                   "uncertainty; with --image also Cook's distance (eq. 6.1). EXR values and PNG pictures.")
+    p.add_argument("matrix", help="transport matrix .npz")
+    p.add_argument("--image", help="a photo, for Cook's distance: " + IMAGE_HELP)
+    p.add_argument("-o", "--output", default="cues", help="output folder (default ./cues)")
+    p.add_argument("--ridge", type=float, default=DEFAULT_RIDGE, help=f"ridge weight (default {DEFAULT_RIDGE})")
+    photo_options(p)
+    p.set_defaults(run=cues)
+
+    p = sub.add_parser("demo", help="the main job on the bundled teapot: transport, photo, solve, cues",
+                       description="Objects as cameras on the bundled teapot: build A, render a photo under a "
+                                   "procedural sky with the independent renderer, solve, map the cues, write a contact sheet.")
+    p.add_argument("--quick", action="store_true", help="small configuration (seconds)")
+    p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    p.add_argument("--mesh", default="teapot", help="fixture name or mesh file (default teapot)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(run=demo)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Entry point of the `hiddenjax` console script; returns the exit status."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    try:
+        args.run(args)
+    except (ValueError, OSError) as e:
+        message = " ".join(str(e).split())  # one line
+        print(f"hiddenjax {args.command}: error: {message}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"hiddenjax {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,124 @@
+"""The `hiddenjax` command, run as a user runs it (subprocess), and in-process for the error paths."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import hiddenjax as hj
+from hiddenjax.cli import main
+
+SCENE = """
+[grid]
+height = 4
+width = 8
+[transport]
+samples = 4
+pixel_samples = 1
+[camera]
+width = 12
+height = 10
+origin = [0.0, 1.0, 1.0]
+target = [0.0, 0.0, 0.0]
+fov = 40.0
+[[surface]]
+mesh = "plane"
+albedo = 0.5
+[surface.transform]
+scale = [10.0, 1.0, 10.0]
+"""
+
+
+def run(*args, cwd):
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    return subprocess.run([sys.executable, "-m", "hiddenjax", *map(str, args)], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """A bare-plane scene file and its transport matrix, built by `hiddenjax transport`."""
+    d = tmp_path_factory.mktemp("cli")
+    (d / "scene.toml").write_text(SCENE)
+    proc = run("transport", "scene.toml", "-o", "A.npz", "--quiet", cwd=d)
+    assert proc.returncode == 0, proc.stderr
+    assert "A is 120 observed pixels x 32 directions" in proc.stdout
+    return d
+
+
+def test_render_then_solve_through_the_command(built):
+    # A constant sky over a bare plane: radiance albedo * L everywhere (closed form, DESIGN.md eq. 5.1)
+    hj.io.write_exr(built / "sky.exr", np.full((16, 32, 3), 2.0, np.float32))  # a panorama: downsampled
+    proc = run("render", "A.npz", "sky.exr", "-o", "image.exr", cwd=built)
+    assert proc.returncode == 0, proc.stderr
+    image = hj.io.read_exr(built / "image.exr")
+    np.testing.assert_allclose(image, 0.5 * 2.0, rtol=1e-5)
+
+    proc = run("solve", "A.npz", "image.exr", "-o", "env.exr", "--png", "env.png", cwd=built)
+    assert proc.returncode == 0, proc.stderr
+    env = hj.io.read_exr(built / "env.exr")
+    assert env.shape == (4, 8, 3) and np.all(env >= 0) and (built / "env.png").is_file()
+    # the solve explains the photo: A x reproduces it (a plane sees only the upper hemisphere's total)
+    T = hj.TransportMatrix.load(built / "A.npz")
+    np.testing.assert_allclose(np.asarray(hj.render(T, env)), image, rtol=2e-2)
+    # A bare plane's rows are all alike (rank 1); the smoothness prior, blind to a constant sky,
+    # then picks the constant map: the truth, up to the ridge's small shrinkage.
+    np.testing.assert_allclose(env[:2], 2.0, rtol=3e-2)
+
+    proc = run("cues", "A.npz", "--image", "image.exr", "-o", "cues", cwd=built)
+    assert proc.returncode == 0, proc.stderr
+    for name in ("leverage", "uncertainty", "cooks_distance"):
+        assert (built / "cues" / f"{name}.png").is_file()
+    leverage = hj.io.read_exr(built / "cues" / "leverage.exr")
+    assert leverage.shape == (10, 12) and np.all((leverage >= 0) & (leverage <= 1))
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (("solve", "A.npz", "missing.exr", "-o", "out.exr"), "not found: missing.exr"),
+        (("solve", "A.npz", "small.exr", "-o", "out.exr"), "is 3x2 pixels but the transport matrix was built for a 12x10"),
+        (("transport", "bad.toml", "-o", "out.npz"), "malformed TOML"),
+        (("render", "nope.npz", "small.exr", "-o", "out.exr"), "transport matrix not found"),
+    ],
+)
+def test_bad_input_one_line_nonzero_no_output(built, args, words):
+    hj.io.write_exr(built / "small.exr", np.ones((2, 3), np.float32))
+    (built / "bad.toml").write_text("[grid\nheight = 4\n")
+    before = set(built.iterdir())
+    proc = run(*args, cwd=built)
+    assert proc.returncode == 1
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0] and lines[0].startswith(f"hiddenjax {args[0]}: error:")
+    assert set(built.iterdir()) == before  # no output, no temporary file left behind
+
+
+def test_usage_errors_exit_2_with_help_hint(built):
+    proc = run("solve", "A.npz", cwd=built)
+    assert proc.returncode == 2 and "--help" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    for command in ("transport", "solve", "render", "cues", "demo"):
+        assert run(command, "--help", cwd=built).returncode == 0
+
+
+def test_inprocess_errors(built, capsys):
+    assert main(["solve", str(built / "A.npz"), str(built / "image.exr"), "-o", str(built / "x.jpg")]) == 1
+    assert "use one of the suffixes .exr, .hdr" in capsys.readouterr().err
+    assert main(["solve", str(built / "A.npz"), str(built / "image.exr"), "-o", str(built / "no" / "x.exr")]) == 1
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["render", str(built / "A.npz"), str(built / "small.exr"), "-o", str(built / "x.exr")]) == 1
+    assert "neither the matrix's 8x4 grid nor a lat-long panorama" in capsys.readouterr().err
+    assert main(["solve", str(built / "A.npz"), str(built / "image.exr"), "-o", str(built / "x.hdr"), "--signed"]) == 1
+    assert "signed" in capsys.readouterr().err
+    assert not any(built.glob("x.*"))
+
+
+def test_demo_quick(tmp_path):
+    proc = run("demo", "--quick", "--quiet", "--out", "demo", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads((tmp_path / "demo" / "results.json").read_text())
+    assert results["kkt_residual"] < 1e-3 and results["env_errors"]["ssim"] > 0.5
+    for name in ("demo.png", "env.exr", "photo.exr", "A.npz", "leverage.png", "cooks_distance.png"):
+        assert (tmp_path / "demo" / name).is_file()
