@@ -100,12 +100,19 @@ def solve_albedo_illumination(
     scale = 1.0 if absolute else jnp.mean(sum(jnp.sum(a * a, axis=0) for a in A1s))
     ls, lr, lp = smooth * scale, ridge * scale, albedo_weight * scale
     R = prior_matrix(Ts[0].grid, ls, lr, dtype)
-    factors = [jnp.linalg.cholesky(a.T @ a + lr * jnp.eye(N, dtype=dtype)) for a in A1s]
-    G = lambda v, rho: jax.scipy.linalg.cho_solve((factors[v], True), A1s[v].T @ rho)  # (P_v,) -> (N,)
-    Gt = lambda v, x: A1s[v] @ jax.scipy.linalg.cho_solve((factors[v], True), x)  # (N,) -> (P_v,)
+    # G = (A'^T A' + lr I)^-1 A'^T through the thin SVD A' = U S V^T: G = V S (S^2 + lr)^-1 U^T.
+    # Through a Cholesky factor of A'^T A' + lr I (the normal equations) G^T G squares a
+    # condition number near 1e8 at the default ridge, and float32 loses it entirely.
+    uses_G = not (isinstance(albedo_weight, (int, float)) and albedo_weight == 0)
+    svds = [jnp.linalg.svd(a, full_matrices=False) for a in A1s] if uses_G else None
+    gain = lambda v: svds[v][1] / (svds[v][1] ** 2 + lr)
+    G = lambda v, rho: svds[v][2].T @ (gain(v) * (svds[v][0].T @ rho))  # (P_v,) -> (N,)
+    Gt = lambda v, x: svds[v][0] @ (gain(v) * (svds[v][2] @ x))  # (N,) -> (P_v,)
 
     def view_objective(v, rho, X):
         residual = (A1s[v] @ X.T).T * rho[None, :] - Ys[v]
+        if not uses_G:
+            return jnp.sum(residual**2)
         g = G(v, rho)
         return jnp.sum(residual**2) + lp * g @ g
 
@@ -122,7 +129,7 @@ def solve_albedo_illumination(
     def rho_star(v, X, rho0):
         AX = A1s[v] @ X.T  # (P, L)
         d = jnp.sum(AX * AX, axis=1)
-        op = lx.FunctionLinearOperator(lambda r: lp * Gt(v, G(v, r)) + d * r,
+        op = lx.FunctionLinearOperator(lambda r: (lp * Gt(v, G(v, r)) if uses_G else 0.0) + d * r,
                                        jax.ShapeDtypeStruct(rho0.shape, dtype), lx.positive_semidefinite_tag)
         rhs = jnp.sum(Ys[v].T * AX, axis=1)  # eq. 5.6
         solver = lx.CG(rtol=1e-6, atol=1e-9, max_steps=500)
