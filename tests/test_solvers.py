@@ -232,6 +232,14 @@ def test_albedo_term_is_float32_stable(textured_plane):
     np.testing.assert_allclose(h32, h64, rtol=1e-3)
 
 
+def test_joint_albedo_raises_instead_of_nan(textured_plane):
+    """Weights too small for float32 (here: none) raise the solver's clear error, not NaN maps."""
+    T, _, photos, _ = textured_plane
+    with pytest.raises(Exception, match="not positive definite"):
+        jax.block_until_ready(jax.jit(lambda T, P: hj.solvers.solve_albedo_illumination(
+            T, P, smooth=0.0, ridge=0.0, albedo_weight=0.0, max_steps=2).env)(T, jnp.asarray(photos)))
+
+
 def test_several_views_share_one_env_map(textured_plane, teapot):
     setup, T1 = teapot
     other = hj.Camera.look_at([0.1, 0.25, -0.15], [0, 0.01, 0], [0, 1, 0], 40.0, 40, 40)

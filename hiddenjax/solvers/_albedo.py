@@ -23,6 +23,7 @@ from ..transport import TransportMatrix
 from ._illumination import (
     DEFAULT_RIDGE,
     DEFAULT_SMOOTH,
+    NOT_POSITIVE_DEFINITE,
     ProjectedNewton,
     _check_image,
     _check_weights,
@@ -124,7 +125,8 @@ def solve_albedo_illumination(
         B = sum(a.T @ a for a in Ars) + R  # eq. 5.5, summed over views
         factor = jnp.linalg.cholesky(B)
         C = sum(y @ a for y, a in zip(Ys, Ars))  # (L, N)
-        return jax.vmap(lambda c: _solve(B, factor, c, ProjectedNewton(), True)[0])(C)
+        X = jax.vmap(lambda c: _solve(B, factor, c, ProjectedNewton(), True)[0])(C)
+        return eqx.error_if(X, ~jnp.all(jnp.isfinite(X)), NOT_POSITIVE_DEFINITE)
 
     def rho_star(v, X, rho0):
         AX = A1s[v] @ X.T  # (P, L)

@@ -17,6 +17,11 @@ from ..transport import TransportMatrix
 # sun, prefer less smoothing (1e-3 gives linear SSIM 0.97 but a speckled sky).
 DEFAULT_SMOOTH = 0.03
 DEFAULT_RIDGE = 1e-4
+NOT_POSITIVE_DEFINITE = (
+    "A^T A + smooth D^T D + ridge I is not positive definite in this precision: the weights are too small "
+    "for the dtype, or zero (on the 32x64 teapot fixture float32 fails at a relative ridge of 1e-4 without "
+    "smoothing); raise ridge or smooth, or use float64 (jax_enable_x64)"
+)
 
 SUCCESS, MAX_STEPS = 0, 1
 
@@ -136,10 +141,7 @@ class IlluminationOperator(eqx.Module):
         ls, lr = regularization_weights(Ts, smooth, ridge, absolute)
         B = gram + prior_matrix(Ts[0].grid, ls, lr, Ts[0].A.dtype)
         factor = jnp.linalg.cholesky(B)
-        factor = eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)),
-                              "A^T A + smooth D^T D + ridge I is not positive definite in this precision: the "
-                              "weights are too small for the dtype (on the teapot fixture float32 needs a relative "
-                              "ridge of about 1e-6 or more) or zero; raise ridge, or use float64 (jax_enable_x64)")
+        factor = eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)), NOT_POSITIVE_DEFINITE)
         return cls(Ts, B, factor, jnp.asarray(ls), jnp.asarray(lr))
 
     def inverse(self) -> Float[Array, "N P"]:
