@@ -138,10 +138,11 @@ def cues(args) -> dict:
     T = _load_matrix(args.matrix)
     image = _load_photo(args.image, T, args.srgb) if args.image else None
     out.mkdir(parents=True, exist_ok=True)
-    return _write_cues(out, T, image, args.ridge)
+    return _write_cues(out, T, image, args.ridge)[0]
 
 
-def _write_cues(out: Path, T: TransportMatrix, image, ridge) -> dict:
+def _write_cues(out: Path, T: TransportMatrix, image, ridge) -> tuple[dict, dict]:
+    """Write the cue maps (EXR values, PNG pictures); `(summary, maps)`, NaN outside the mask."""
     mask = np.asarray(T.mask)
     linear = _cues.LinearCues.build(T, ridge=ridge)
     maps = {
@@ -158,7 +159,7 @@ def _write_cues(out: Path, T: TransportMatrix, image, ridge) -> dict:
         io.write_map(out / f"{name}.png", value, gamma=gamma)
         summary[name] = dict(mean=float(np.nanmean(value)), max=float(np.nanmax(value)))
     print(f"wrote {', '.join(maps)} to {out}/ (EXR values, PNG pictures)")
-    return summary
+    return summary, {name: value for name, (value, _) in maps.items()}
 
 
 def demo(args) -> dict:
@@ -186,10 +187,9 @@ def demo(args) -> dict:
     io.write_exr(out / "env.exr", env)
     io.write_exr(out / "truth.exr", truth)
     t0 = time.perf_counter()
-    cue_summary = _write_cues(out, T, photo, DEFAULT_RIDGE)
+    cue_summary, cue_maps = _write_cues(out, T, photo, DEFAULT_RIDGE)
     t_cues = time.perf_counter() - t0
 
-    mask = np.asarray(T.mask)
     white = float(np.percentile(truth, 99))
     io.contact_sheet(
         out / "demo.png",
@@ -198,9 +198,9 @@ def demo(args) -> dict:
             ("what the teapot saw", env, "radiance", white),
             (f"truth ({grid.height}x{grid.width})", truth, "radiance", white),
             ("|estimate - truth|", np.abs(env - truth).mean(axis=2), "map"),
-            ("leverage", io.read_exr(out / "leverage.exr") + np.where(mask, 0, np.nan), "map"),
-            ("Cook's distance^0.5", np.sqrt(io.read_exr(out / "cooks_distance.exr")) + np.where(mask, 0, np.nan), "map"),
-            ("uncertainty (env)", io.read_exr(out / "uncertainty.exr"), "map"),
+            ("leverage", cue_maps["leverage"], "map"),
+            ("Cook's distance^0.5", np.sqrt(cue_maps["cooks_distance"]), "map"),
+            ("uncertainty (env)", cue_maps["uncertainty"], "map"),
         ],
         height=160,
         columns=4,
