@@ -75,7 +75,7 @@ def run_adam(step, carry, objective, equal_seconds, budget_seconds, chunk, tol=1
     """Adam in jitted chunks: the carry when `equal_seconds` have passed, and at convergence.
 
     Converged: the objective fell by less than `tol` (relative) over the last chunk, or the
-    budget ran out (reported). Returns `(equal, final)` as `(carry, steps, seconds)` triples.
+    budget ran out (said in the note). Returns two `(name, note, carry, seconds)`: equal time, final.
     """
     run = jax.jit(lambda c: jax.lax.scan(lambda c, _: (step(c), None), c, None, length=chunk)[0])
     jax.block_until_ready(run(carry))  # compile
@@ -86,10 +86,12 @@ def run_adam(step, carry, objective, equal_seconds, budget_seconds, chunk, tol=1
         elapsed += time.perf_counter() - t0
         steps += chunk
         if equal is None and elapsed >= equal_seconds:
-            equal = (carry, steps, elapsed)
+            equal = ("Adam, equal time", f"{steps} steps", carry, elapsed)
         value = float(objective(carry))
         if abs(last - value) <= tol * abs(last) or elapsed >= budget_seconds:
-            return equal or (carry, steps, elapsed), (carry, steps, elapsed, elapsed < budget_seconds)
+            budget = ", budget reached" if elapsed >= budget_seconds else ""
+            final = ("Adam, to convergence", f"{steps} steps{budget}", carry, elapsed)
+            return equal or ("Adam, equal time", f"{steps} steps", carry, elapsed), final
         last = value
 
 
@@ -111,10 +113,8 @@ def known_albedo(args, setup, T, sky):
                                            hj.solvers.DEFAULT_RIDGE, LEARNING_RATE)
     step = lambda c: problem.step(c)[0]
     objective = jax.jit(lambda c: problem.objective(problem.x(c[0])))
-    equal, final = run_adam(step, problem.init(), objective, ours, args.adam_seconds, args.chunk)
-    for label, (carry, steps, seconds, *converged) in (("Adam, equal time", equal), ("Adam, to convergence", final)):
+    for label, note, carry, seconds in run_adam(step, problem.init(), objective, ours, args.adam_seconds, args.chunk):
         env = np.asarray(problem.x(carry[0])).reshape(grid.shape)
-        note = f"{steps} steps" + ("" if not converged or converged[0] else ", budget reached")
         rows.append(dict(method=f"{label} ({note})", seconds=seconds, **hj.metrics.env_errors(env, truth)))
         maps[label] = env
     return dict(rows=rows, maps=maps, photo=photo)
@@ -126,12 +126,11 @@ def polka_dots(size: int = 512, spacing: int = 32, radius: int = 9) -> np.ndarra
     return np.where(i**2 + j**2 <= radius**2, 0.25, 0.85)
 
 
-def joint_objective(A1, R, Y, lp_G):
-    """Eq. 5.4 summed over lightings, for `rho (P,)` and `X (L, N)`; `lp_G` is `rho -> lp ||G rho||^2` or None."""
+def joint_objective(A1, R, Y):
+    """Eq. 5.3 summed over lightings with `A = diag(rho) A'`, for `rho (P,)` and `X (L, N)` (no albedo term)."""
     def f(rho, X):
         r = rho[None] * (X @ A1.T) - Y
-        value = jnp.sum(r * r) + jnp.sum(X * (X @ R))
-        return value if lp_G is None else value + lp_G(rho)
+        return jnp.sum(r * r) + jnp.sum(X * (X @ R))
     return f
 
 
@@ -180,7 +179,7 @@ def unknown_albedo(args, setup, T_known, suns):
     # Projected Adam on the joint (+L2+smooth) objective: x = x0 softplus(z), rho clipped to [1e-3, 1].
     ls, lr = hj.solvers.regularization_weights(T, hj.solvers.DEFAULT_SMOOTH, hj.solvers.DEFAULT_RIDGE)
     R = hj.solvers.prior_matrix(grid, ls, lr, T.A.dtype)
-    f = joint_objective(T.A, R, Y, None)
+    f = joint_objective(T.A, R, Y)
     a1 = jnp.sum(T.A, axis=1)
     x0 = jnp.maximum(Y @ a1 / (a1 @ a1), 1e-12)[:, None]  # (L, 1): the least-squares constant maps
     params = (jnp.ones(T.A.shape[0]), jnp.full((len(suns), grid.size), jnp.log(jnp.expm1(1.0))))
@@ -194,11 +193,10 @@ def unknown_albedo(args, setup, T_known, suns):
         return (jnp.clip(p[0], 1e-3, 1.0), p[1]), state
 
     objective = jax.jit(lambda c: loss(c[0]))
-    equal, final = run_adam(step, (params, opt.init(params)), objective, ours, args.adam_seconds, args.chunk)
-    for label, (carry, steps, seconds, *converged) in (("Adam, equal time", equal), ("Adam, to convergence", final)):
+    adam = run_adam(step, (params, opt.init(params)), objective, ours, args.adam_seconds, args.chunk)
+    for label, note, carry, seconds in adam:
         rho, z = carry[0]
         envs = np.asarray(x0 * jax.nn.softplus(z)).reshape((len(suns),) + grid.shape)
-        note = f"{steps} steps" + ("" if not converged or converged[0] else ", budget reached")
         row, rho_img, envs = score(f"{label} ({note})", seconds, np.asarray(T.rows_to_image(rho)), envs)
         rows.append(row)
         maps[label] = (rho_img, envs)
