@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import __version__
 from . import cues as _cues
 from . import io
 from . import metrics
@@ -221,7 +222,7 @@ def demo(args) -> dict:
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="hiddenjax", description=__doc__.split("\n\n")[0],
                      epilog="Images: " + IMAGE_HELP + ". Run `hiddenjax COMMAND --help` for each command.")
-    parser.add_argument("--version", action="version", version="hiddenjax 0.1.0")
+    parser.add_argument("--version", action="version", version=f"hiddenjax {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser, metavar="COMMAND")
 
     p = sub.add_parser("transport", help="build the transport matrix A of a scene file (Embree)",
