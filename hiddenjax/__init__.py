@@ -3,6 +3,7 @@
 Everything public is re-exported here; implementation modules are private.
 """
 
+from . import corners as corners
 from . import cues as cues
 from . import io as io
 from . import metrics as metrics

@@ -1,0 +1,125 @@
+"""Corner scenes: differential rendering vs. render-twice-and-subtract, dataset, training and refinement speed.
+
+    python benchmarks/bench_corners.py [--quick] [--out DIR]
+
+Differential rendering (issue 6, thesis 3.2.1 reports ~15x): the exact one-bounce difference image
+by sampling the object and its shadow (`DifferentialRenderer.render(negative=True)`) against the
+baseline in the same run, a one-bounce path tracer run with and without the object on common
+random numbers (`render_full`) and subtracted. Both are scored against a reference (the
+differential estimator with many samples, which the tests hold equal to render-twice); the
+speed-up is the ratio of `time x squared error` (the time each needs to reach the same noise).
+Also: dataset rendering throughput in worker processes, a training step of the CNN at the
+thesis' full 128x128 resolution vs. the default 2x pooled input, and one variational refinement
+step (M = 5 samples + the mean rendered with Embree).
+"""
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import matplotlib
+import numpy as np
+
+import hiddenjax.corners as hc
+from _report import Table, finish_plot  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+def _timed(fn, repeat=1):
+    t0 = time.perf_counter()
+    for _ in range(repeat):
+        out = fn()
+    return out, (time.perf_counter() - t0) / repeat
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("out/bench_corners"))
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    quick = args.quick
+    size = 24 if quick else 64
+    table = Table()
+    table.append(("case", "time", "error / throughput", "ratio"))
+    results = dict(size=size, rendering=[], scenes=[])
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ratios = []
+    for kind, seed in ([("T", 2)] if quick else [("L", 1), ("T", 2), ("table", 3)]):
+        scene = hc.random_corner_scene(kind, seed, width=size, height=size)
+        r = hc.DifferentialRenderer(scene)
+        reference = np.mean([r.render(samples=256, seed=1000 + k, negative=True) for k in range(2 if quick else 8)], 0)
+        norm = np.linalg.norm(reference)
+        rows = []
+        for s in ([4, 16] if quick else [4, 16, 64]):
+            img, t = _timed(lambda: r.render(samples=s, seed=s, negative=True))
+            rows.append(("differential", s, t, float(np.linalg.norm(img - reference) / norm)))
+        for s in ([16, 64] if quick else [64, 256, 1024]):
+            img, t = _timed(lambda: hc.render_full(scene, with_object=True, samples=s, seed=s)
+                            - hc.render_full(scene, with_object=False, samples=s, seed=s))
+            rows.append(("render twice", s, t, float(np.linalg.norm(img - reference) / norm)))
+        eff = {m: np.median([t * e**2 for n, _, t, e in rows if n == m]) for m in ("differential", "render twice")}
+        ratio = float(eff["render twice"] / eff["differential"])
+        ratios.append(ratio)
+        for n, s, t, e in rows:
+            table.append((f"{kind}: {n}, {s} samples/px", f"{t * 1000:.0f} ms", f"rel. error {e:.3f}", ""))
+        table.append((f"{kind}: speed-up at equal noise", "", "time x error^2",
+                      f"**{ratio:.1f}x** vs render twice"))
+        results["rendering"].append(dict(kind=kind, rows=[dict(method=n, samples=s, seconds=t, rel_error=e)
+                                                          for n, s, t, e in rows], speedup=ratio))
+        for m, mk in (("differential", "o-"), ("render twice", "s--")):
+            pts = [(t, e) for n, _, t, e in rows if n == m]
+            ax.loglog(*zip(*pts), mk, label=f"{kind} {m}")
+    finish_plot(fig, ax, args.out / "differential_rendering.png", "seconds per image", "relative error",
+                f"{size}x{size} corner images: error vs. time")
+    plt.close(fig)
+    results["median_speedup"] = float(np.median(ratios))
+
+    # Thesis model (object as the only emitter) at 128x128, as used for the datasets.
+    scene = hc.random_corner_scene("L", 1, width=32 if quick else 128, height=32 if quick else 128)
+    r = hc.DifferentialRenderer(scene)
+    _, t_pos = _timed(lambda: r.render(samples=4), 3)
+    table.append(("128x128 emitter-only render, 4 samples/px", f"{t_pos * 1000:.0f} ms", "", ""))
+    count = 8 if quick else 128
+    _, t_data = _timed(lambda: hc.generate_dataset("L", count, size=32 if quick else 128, samples=4, workers=2,
+                                                   progress=False))
+    table.append((f"dataset, {count} scenes, 2 processes", f"{t_data:.1f} s", f"{count / t_data:.1f} scenes/s", ""))
+    results.update(render_emitter_s=t_pos, dataset_scenes_per_s=count / t_data)
+
+    # One training step, batch 64, at the full 128x128 input vs. the default 2x pooled input.
+    steps = {}
+    for pool in (1, 2):
+        side = 32 if quick else 128
+        model = hc.CornerNet(jax.random.key(0), size=side, pool=pool, channels=(16, 32, 32), hidden=128)
+        x = jax.random.normal(jax.random.key(1), (64, side, side))
+        pos = jnp.full((64, 2), 0.2)
+        n1, n2 = (1, 3) if quick else (2, 12)
+        # train() compiles its step each call: the difference of two run lengths is the step time.
+        t1, t2 = (_timed(lambda n=n: hc.train(model, x, pos, hc.TrainConfig(steps=n, batch=64), progress=False))[1]
+                  for n in (n1, n2))
+        steps[pool] = (t2 - t1) / (n2 - n1)
+    table.append(("training step, batch 64, full resolution", f"{steps[1] * 1000:.0f} ms", "", ""))
+    table.append(("training step, batch 64, 2x pooled input", f"{steps[2] * 1000:.0f} ms", "",
+                  f"{steps[1] / steps[2]:.1f}x faster"))
+    results.update(train_step_full_s=steps[1], train_step_pooled_s=steps[2])
+
+    # Variational refinement: time per step (6 Embree renders + the jitted update).
+    observed = r.render(samples=64, seed=7)
+    truth = np.asarray(scene.hidden.position)
+    n = 2 if quick else 10
+    sol, t = _timed(lambda: hc.refine_location(r, observed, truth + 0.03, 0.03**2 * np.eye(2), key=jax.random.key(0),
+                                               steps=n, samples=16))
+    table.append((f"variational refinement, {n} steps", f"{t:.1f} s", f"{t / n * 1000:.0f} ms/step", ""))
+    results["refine_step_s"] = t / n
+    table.print_all()
+    (args.out / "results.json").write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

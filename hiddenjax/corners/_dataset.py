@@ -1,0 +1,102 @@
+"""Rendered training data: differential images of random corner scenes, in parallel, cached to disk.
+
+Sample `i` of a dataset with seed `s` is `random_corner_scene(kind, s * 1_000_003 + i)` rendered by
+`DifferentialRenderer`, so any sample can be regenerated on its own and the result does not depend
+on the number of worker processes. The cache is one compressed `.npz` holding the images, the
+hidden positions, the scene parameters that matter for analysis, and the configuration; a cache
+whose configuration differs from the request is an error rather than silently reused.
+"""
+
+import json
+import os
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ._render import DifferentialRenderer
+from ._scenes import SCENE_CLASSES, random_corner_scene
+
+
+class CornerDataset(NamedTuple):
+    """`images (N, H, W)` float32 differential radiance, `positions (N, 2)` hidden (x, z) metres,
+    `radius (N,)` of the hidden cylinder, `kind` the scene class, `config` the generation settings."""
+
+    images: np.ndarray
+    positions: np.ndarray
+    radius: np.ndarray
+    kind: str
+    config: dict
+
+    def split(self, validation: float = 0.1):
+        """`(train, validation)`: the last `validation` fraction held out (samples are i.i.d.)."""
+        n = len(self.images)
+        k = n - max(1, int(round(validation * n)))
+        part = lambda sl: CornerDataset(self.images[sl], self.positions[sl], self.radius[sl], self.kind, self.config)
+        return part(slice(0, k)), part(slice(k, n))
+
+
+def render_sample(kind: str, seed: int, size: int = 128, samples: int = 8, negative: bool = False):
+    """`(image (size, size), position (2,), radius)` of one random scene (see the module docstring)."""
+    scene = random_corner_scene(kind, seed, width=size, height=size)
+    image = DifferentialRenderer(scene).render(samples=samples, seed=seed, negative=negative)
+    return image, np.asarray(scene.hidden.position, np.float32), scene.hidden.radius
+
+
+def _render_many(args):
+    kind, seeds, size, samples, negative = args
+    return [render_sample(kind, s, size, samples, negative) for s in seeds]
+
+
+def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, samples: int = 8,
+                     negative: bool = False, workers: int | None = None, cache=None,
+                     progress: bool = True) -> CornerDataset:
+    """Render `count` random `kind` scenes (`'L'`, `'T'`, `'table'`) in `workers` processes.
+
+    **Arguments:**
+    - `samples`: object points per pixel (render noise; the training noise augmentation dominates).
+    - `negative`: include the negative terms of the exact one-bounce difference (see
+      `DifferentialRenderer.render`); the default is the thesis' object-as-only-emitter model.
+    - `cache`: an `.npz` path: loaded when it exists with the same configuration, written otherwise.
+    """
+    if kind not in SCENE_CLASSES:
+        raise ValueError(f"unknown corner scene class {kind!r}; choose one of {SCENE_CLASSES}")
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    config = dict(kind=kind, count=int(count), seed=int(seed), size=int(size), samples=int(samples),
+                  negative=bool(negative))
+    if cache is not None and Path(cache).exists():
+        with np.load(cache) as f:
+            stored = json.loads(str(f["config"]))
+            if stored != config:
+                raise ValueError(f"cache {cache} was made with {stored}, not {config}; delete it or pass another path")
+            return CornerDataset(f["images"], f["positions"], f["radius"], kind, config)
+    seeds = [seed * 1_000_003 + i for i in range(count)]
+    workers = max(1, min(workers or os.cpu_count() or 1, count))
+    chunk = max(1, min(16, count // (4 * workers) or 1))
+    jobs = [(kind, seeds[i:i + chunk], size, samples, negative) for i in range(0, count, chunk)]
+    out = []
+    with tqdm(total=count, desc=f"rendering {kind} scenes", unit="scene", disable=not progress) as bar:
+        if workers == 1:
+            for job in jobs:
+                out += _render_many(job)
+                bar.update(len(job[1]))
+        else:
+            # spawn, not fork: the parent has JAX's threads running.
+            with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+                for part in pool.map(_render_many, jobs):
+                    out += part
+                    bar.update(len(part))
+    data = CornerDataset(np.stack([o[0] for o in out]), np.stack([o[1] for o in out]),
+                         np.asarray([o[2] for o in out], np.float32), kind, config)
+    if cache is not None:
+        cache = Path(cache)
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_name(cache.stem + ".tmp.npz")
+        np.savez_compressed(tmp, images=data.images, positions=data.positions, radius=data.radius,
+                            config=json.dumps(config))
+        os.replace(tmp, cache)
+    return data

@@ -1,0 +1,228 @@
+"""Hidden objects around corners (thesis ch. 3): scenes, differential rendering, labels, CNN, refinement."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hiddenjax.corners as hc
+import hiddenjax.solvers as hs
+
+
+@pytest.mark.parametrize("kind", hc.SCENE_CLASSES)
+def test_random_scenes_hide_the_object_at_tabletop_scale(kind):
+    for seed in range(3):
+        scene = hc.random_corner_scene(kind, seed, width=48, height=48)
+        assert not hc.object_visible(scene)
+        h = scene.hidden
+        assert 0.045 <= 2 * h.radius <= 0.08  # the thesis' 4.5-8 cm objects
+        assert 0.15 <= scene.params["wall_height"] <= 0.4
+        theta, rho = scene.polar()
+        assert 0 < theta < np.pi / 2 and 0 < rho <= hc.RHO_MAX
+    assert hc.random_corner_scene(kind, 7).params == hc.random_corner_scene(kind, 7).params  # seeded
+
+
+def test_unknown_scene_class_is_an_error():
+    with pytest.raises(ValueError, match="unknown corner scene class 'X'"):
+        hc.random_corner_scene("X")
+    with pytest.raises(ValueError, match="count must be >= 1"):
+        hc.generate_dataset("L", 0)
+
+
+def _blocks(image, b=4):
+    H, W = image.shape
+    return image.reshape(H // b, b, W // b, b).sum((1, 3)).ravel()
+
+
+@pytest.mark.parametrize("kind,seed", [("T", 2), ("table", 3)])
+def test_differential_rendering_equals_render_twice_and_subtract(kind, seed):
+    """Same one-bounce physics by two estimators: object/shadow sampling vs. a path tracer run twice."""
+    scene = hc.random_corner_scene(kind, seed, width=16, height=16)
+    renderer = hc.DifferentialRenderer(scene)
+    direct = np.array([_blocks(renderer.render(samples=64, seed=k, negative=True)) for k in range(8)])
+    twice = np.array([_blocks(hc.render_full(scene, with_object=True, samples=512, seed=k)
+                              - hc.render_full(scene, with_object=False, samples=512, seed=k)) for k in range(6)])
+    a, b = direct.mean(0), twice.mean(0)
+    se_sum = np.sqrt(direct.sum(1).var(ddof=1) / len(direct) + twice.sum(1).var(ddof=1) / len(twice))
+    assert abs(a.sum() - b.sum()) < 4 * se_sum, (a.sum(), b.sum(), se_sum)
+    assert abs(a.sum()) > 4 * se_sum  # there is a signal to agree on
+    assert np.corrcoef(a, b)[0, 1] > 0.9
+
+
+def test_pure_emitter_model_is_non_negative_and_the_negative_terms_only_subtract():
+    scene = hc.random_corner_scene("L", 1, width=32, height=32)
+    r = hc.DifferentialRenderer(scene)
+    positive = r.render(samples=16, negative=False)
+    assert positive.min() >= 0 and positive.max() > 0
+    # The same random numbers drive the positive term in both, so the full image is never above it.
+    assert np.all(r.render(samples=16, negative=True) <= positive + 1e-9)
+
+
+def test_temporal_difference_is_antisymmetric_in_time():
+    scene = hc.random_corner_scene("L", 4, width=24, height=24)
+    r = hc.DifferentialRenderer(scene)
+    a, b = (0.2, 0.1), (0.3, 0.12)
+    np.testing.assert_allclose(hc.temporal_difference(r, a, b), -hc.temporal_difference(r, b, a), atol=1e-12)
+    assert np.abs(hc.temporal_difference(r, a, b)).max() > 0
+
+
+def test_polar_grid_round_trips():
+    grid = hc.PolarGrid()
+    rng = np.random.default_rng(0)
+    theta, rho = rng.uniform(0, np.pi / 2, 100), rng.uniform(0.01, hc.RHO_MAX, 100)
+    xz = np.stack([rho * np.cos(theta), rho * np.sin(theta)], -1)
+    np.testing.assert_allclose(grid.cell_to_position(grid.position_to_cell(xz)), xz, atol=1e-6)
+    np.testing.assert_allclose(hc.position_to_polar(xz), np.stack([theta, rho], -1), atol=1e-6)
+    # Cell (0, 0) is the first angle and range bin; the last cell's centre is half a cell from the edge.
+    np.testing.assert_allclose(grid.cell_to_polar(jnp.array([31.0, 31.0])),
+                               [np.pi / 2 * 63 / 64, hc.RHO_MAX * 63 / 64], rtol=1e-6)
+
+
+def test_label_is_a_unit_gaussian_of_sigma_three_cells_at_the_position():
+    grid = hc.PolarGrid()
+    centre = jnp.array([10.0, 20.0])
+    label = grid.label(grid.cell_to_position(centre))
+    assert float(label[10, 20]) == pytest.approx(1.0, abs=1e-5)
+    assert float(label[13, 20]) == pytest.approx(np.exp(-0.5), abs=1e-5)  # one sigma (3 cells) away
+    assert float(label[10, 26]) == pytest.approx(np.exp(-2.0), abs=1e-5)
+
+
+def test_gaussian_fit_recovers_a_known_gaussian():
+    i, j = np.meshgrid(np.arange(32.0), np.arange(32.0), indexing="ij")
+    mean, cov = np.array([10.3, 20.7]), np.array([[4.0, 1.5], [1.5, 2.0]])
+    d = np.stack([i - mean[0], j - mean[1]], -1)
+    heat = 0.1 + 0.7 * np.exp(-0.5 * np.einsum("abi,ij,abj->ab", d, np.linalg.inv(cov), d))
+    fit = jax.jit(hc.fit_gaussian)(jnp.asarray(heat, jnp.float32))
+    np.testing.assert_allclose(fit.mean, mean, atol=1e-3)
+    np.testing.assert_allclose(fit.cov, cov, atol=1e-3)
+    assert float(fit.amplitude) == pytest.approx(0.7, abs=1e-4)
+    assert float(fit.offset) == pytest.approx(0.1, abs=1e-4)
+    # A second, weaker mode far away does not pull the fit (it is outside the window).
+    other = heat + 0.3 * np.exp(-((i - 28) ** 2 + (j - 3) ** 2) / 4)
+    np.testing.assert_allclose(hc.fit_gaussian(jnp.asarray(other, jnp.float32)).mean, mean, atol=2e-2)
+
+
+def test_locate_reads_a_label_back_to_its_position():
+    grid = hc.PolarGrid()
+    xz = jnp.array([0.21, 0.13])
+    pos, cov = hc.locate(grid.label(xz), grid)
+    np.testing.assert_allclose(pos, xz, atol=1e-4)
+    assert np.all(np.linalg.eigvalsh(np.asarray(cov)) > 0)
+
+
+def test_heatmap_loss_matches_eq_3_1_on_hand_values():
+    w = jnp.array([2.0, -1.0, 0.0, 30.0])
+    y = jnp.array([1.0, 0.0, 0.5, 0.0])
+    by_hand = np.mean([np.log1p(np.exp(-2.0)), np.log1p(np.exp(-1.0)), np.log(2.0), 30.0])
+    assert float(hc.heatmap_loss(w, y)) == pytest.approx(by_hand, rel=1e-6)
+
+
+def test_network_maps_an_image_to_grid_logits():
+    model = hc.CornerNet(jax.random.key(0), size=32, grid=(8, 8), channels=(4, 4, 4), hidden=8)
+    out = model(jnp.ones((32, 32)) + jnp.arange(32.0)[None])
+    assert out.shape == (8, 8) and np.all(np.isfinite(out))
+    with pytest.raises(ValueError, match="multiple of 8"):
+        hc.CornerNet(jax.random.key(0), size=30)
+
+
+def _tiny_problem(n=16):
+    rng = np.random.default_rng(0)
+    positions = rng.uniform([0.05, 0.05], [0.3, 0.3], (n, 2)).astype(np.float32)
+    images = rng.normal(size=(n, 32, 32)).astype(np.float32)
+    images[np.arange(n), (positions[:, 0] * 100).astype(int), (positions[:, 1] * 100).astype(int)] += 20
+    model = hc.CornerNet(jax.random.key(1), size=32, grid=(8, 8), channels=(4, 8, 8), hidden=16)
+    return model, images, positions, hc.PolarGrid(n_theta=8, n_rho=8)
+
+
+def test_one_training_step_reduces_the_loss():
+    model, images, positions, grid = _tiny_problem()
+    config = hc.TrainConfig(steps=1, batch=16, learning_rate=1e-3, noise_var=0.0)
+    labels = jax.vmap(grid.label)(jnp.asarray(positions))
+    loss = lambda m: float(hc.heatmap_loss(jax.vmap(m)(jax.vmap(hc.instance_normalize)(jnp.asarray(images))), labels))
+    trained, log = hc.train(model, images, positions, config, grid=grid, progress=False)
+    assert log.loss[0] == pytest.approx(loss(model), rel=1e-5)
+    assert loss(trained) < loss(model)
+
+
+def test_training_resumes_from_a_checkpoint_exactly(tmp_path):
+    model, images, positions, grid = _tiny_problem()
+    full, log_full = hc.train(model, images, positions, hc.TrainConfig(steps=4, batch=8, checkpoint_every=2),
+                              grid=grid, progress=False)
+    ckpt = tmp_path / "cnn.eqx"
+    hc.train(model, images, positions, hc.TrainConfig(steps=2, batch=8, checkpoint_every=2), grid=grid,
+             checkpoint=ckpt, progress=False)
+    resumed, log = hc.train(model, images, positions, hc.TrainConfig(steps=4, batch=8, checkpoint_every=2),
+                            grid=grid, checkpoint=ckpt, progress=False)
+    np.testing.assert_allclose(log.loss, log_full.loss, rtol=1e-6)
+    for a, b in zip(jax.tree.leaves(resumed), jax.tree.leaves(full)):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_dataset_is_seeded_cached_and_checked(tmp_path):
+    cache = tmp_path / "L.npz"
+    data = hc.generate_dataset("L", 3, seed=5, size=16, samples=2, workers=1, cache=cache, progress=False)
+    image, position, _ = hc.render_sample("L", 5 * 1_000_003 + 1, size=16, samples=2)
+    np.testing.assert_array_equal(data.images[1], image)
+    np.testing.assert_array_equal(data.positions[1], position)
+    again = hc.generate_dataset("L", 3, seed=5, size=16, samples=2, cache=cache, progress=False)
+    np.testing.assert_array_equal(again.images, data.images)
+    with pytest.raises(ValueError, match="was made with"):
+        hc.generate_dataset("L", 4, seed=5, size=16, samples=2, cache=cache, progress=False)
+
+
+def test_score_function_gradient_is_unbiased_on_a_quadratic():
+    """Mean over many draws of eq. 3.6 (with and without baseline) vs. the analytic gradient of U."""
+    A, c = jnp.array([[1.0, 0.3], [0.0, 2.0]]), jnp.array([1.0, -1.0])
+    loss = lambda z: jnp.sum((z @ A.T - c[None]) ** 2, -1)
+    p = hs.GaussianParams(jnp.array([0.5, 0.2]), jnp.array([-0.3, 0.1]), jnp.array([[0.0, 0.0], [0.4, 0.0]]))
+    U = lambda p: jnp.sum((A @ p.mean - c) ** 2) + jnp.trace(A @ p.cov() @ A.T)  # E over N(mean, cov)
+    exact = jax.grad(U)(p)
+    for baseline in (True, False):
+        def one(k):
+            z = p.sample(k, 5)
+            return hs.score_function_gradient(p, z, loss(z), baseline)
+
+        draws = jax.vmap(one)(jax.random.split(jax.random.key(0), 40000))
+        for got, want in zip(jax.tree.leaves(draws), jax.tree.leaves(exact)):
+            mean, se = np.mean(got, 0), np.std(got, 0) / np.sqrt(len(got)) + 1e-9
+            assert np.all(np.abs(mean - want) < 4.5 * se), (baseline, mean, want, se)
+
+
+def test_variational_minimize_finds_the_minimum_of_a_black_box_through_a_callback():
+    A, c = np.array([[1.0, 0.3], [0.0, 2.0]]), np.array([1.0, -1.0])
+    black_box = lambda z: np.sum((np.asarray(z) @ A.T - c) ** 2, -1).astype(np.float32)
+    loss = lambda z: jax.pure_callback(black_box, jax.ShapeDtypeStruct(z.shape[:1], jnp.float32), z,
+                                       vmap_method="sequential")
+    solve = jax.jit(lambda k: hs.variational_minimize(loss, jnp.zeros(2), 0.5 * jnp.eye(2), key=k, steps=250))
+    runs = [solve(jax.random.key(k)) for k in range(4)]
+    # A stochastic search: most runs (measured: 3 of these 4) land on the minimum.
+    found = [float(s.loss[-1]) < 0.01 * float(s.loss[0]) and np.allclose(s.mean, np.linalg.solve(A, c), atol=0.06)
+             for s in runs]
+    assert sum(found) >= 3, [(float(s.loss[-1]), np.asarray(s.mean)) for s in runs]
+    assert all(np.all(np.linalg.eigvalsh(np.asarray(s.cov)) > 0) for s in runs)
+    with pytest.raises(ValueError, match=r"cov must be \(2, 2\)"):
+        hs.variational_minimize(loss, jnp.zeros(2), jnp.eye(3), key=jax.random.key(0))
+
+
+def test_refinement_against_embree_moves_a_perturbed_guess_towards_the_truth():
+    scene = hc.random_corner_scene("L", 5, width=48, height=48)
+    r = hc.DifferentialRenderer(scene)
+    observed = r.render(samples=128, seed=99)  # another, larger sample set than the model's
+    truth = np.asarray(scene.hidden.position)
+    start = truth + np.array([0.04, -0.03])
+    errors = []
+    for k in range(3):
+        sol = hc.refine_location(r, observed, start, (0.03**2) * np.eye(2), key=jax.random.key(k), steps=20,
+                                 samples=16)
+        assert float(sol.loss[-1]) < float(sol.loss[0])
+        errors.append(np.linalg.norm(np.asarray(sol.mean) - truth))
+    assert np.mean(errors) < 0.8 * np.linalg.norm(start - truth), errors  # measured: 5 cm -> 3.0 cm mean
+    with pytest.raises(ValueError, match="does not match the renderer's camera"):
+        hc.rendering_loss(r, observed[:16])
+
+
+def test_location_saliency_is_an_image_of_finite_gradients():
+    model, images, positions, grid = _tiny_problem(4)
+    s = hc.location_saliency(model, images[0], grid)
+    assert s.shape == (32, 32) and np.all(np.isfinite(s)) and float(s.max()) > 0
