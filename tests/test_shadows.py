@@ -11,7 +11,6 @@ import hiddenjax as hj
 from conftest import relrmse
 from hiddenjax import shadows as sh
 from hiddenjax.transport._embree import RayCaster
-from hiddenjax.transport._point_lights import _occluded_before
 
 RNG = np.random.default_rng(7)
 
@@ -230,7 +229,7 @@ def teapot_points():
 def _hard_visibility(scene, points, light):
     v = light - points
     d = np.linalg.norm(v, axis=1)
-    return ~_occluded_before(RayCaster(scene), points, v / d[:, None], d)
+    return ~RayCaster(scene).occluded_within(points, v / d[:, None], d)
 
 
 def test_soft_visibility_converges_to_embree_away_from_shadow_edges(teapot_points):

@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numpy as np
 from tqdm.auto import tqdm
 
+from .._files import atomic_path
 from ._render import DifferentialRenderer
 from ._scenes import SCENE_CLASSES, random_corner_scene
 
@@ -93,10 +94,8 @@ def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, s
     data = CornerDataset(np.stack([o[0] for o in out]), np.stack([o[1] for o in out]),
                          np.asarray([o[2] for o in out], np.float32), kind, config)
     if cache is not None:
-        cache = Path(cache)
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache.with_name(cache.stem + ".tmp.npz")
-        np.savez_compressed(tmp, images=data.images, positions=data.positions, radius=data.radius,
-                            config=json.dumps(config))
-        os.replace(tmp, cache)
+        Path(cache).parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(cache) as tmp:
+            np.savez_compressed(tmp, images=data.images, positions=data.positions, radius=data.radius,
+                                config=json.dumps(config))
     return data

@@ -19,9 +19,10 @@ them against each other and `benchmarks/bench_corners.py` measures the speed-up 
 
 import numpy as np
 
+from ..scene import Scene, Surface
 from ..scene._sampling import cosine_directions
 from ..transport._embree import RayCaster, pixel_centre_hits
-from ._scenes import CornerScene, HiddenObject
+from ._scenes import CornerScene
 
 
 def _unit(v):
@@ -38,18 +39,15 @@ def _lamp_radiance(albedo, points, normals, lamp, intensity):
 def _blocked(caster: RayCaster, origins, targets) -> np.ndarray:
     """Is the segment `origins -> targets` blocked by the caster's geometry? `(n,)` bool."""
     w, d = _unit(targets - origins)
-    hits = caster.intersect(origins, w)
-    t = np.linalg.norm(hits.position - origins, axis=-1)
-    return (hits.surface >= 0) & (t < d * (1 - 1e-6))
+    return caster.occluded_within(origins, w, d * (1 - 1e-6))
 
 
-def object_samples(hidden: HiddenObject, count: int, rng) -> tuple[np.ndarray, np.ndarray, float]:
+def object_samples(mesh, count: int, rng) -> tuple[np.ndarray, np.ndarray, float]:
     """`(points (n, 3), outward normals (n, 3), total area)`: uniform by area on the object's mesh.
 
     The mesh (not the ideal cylinder) is sampled so that this path and `render_full`, which ray
     casts the same mesh, describe one and the same object.
     """
-    mesh = hidden.mesh()
     tri = np.asarray(mesh.triangles)
     area = np.asarray(mesh.area_faces)
     face = rng.choice(len(tri), size=count, p=area / area.sum())
@@ -104,10 +102,10 @@ class DifferentialRenderer:
         sc = self.scene
         hidden = sc.hidden if position is None else sc.hidden.moved(position)
         rng = np.random.default_rng([seed, 0xC0])
-        obj = RayCaster(_single(hidden))
+        mesh = hidden.mesh()
         off = self.caster.offset
         # (a), (b): a pool of object points with their lamp-lit radiance, then `samples` per pixel.
-        q, nq, area = object_samples(hidden, pool, rng)
+        q, nq, area = object_samples(mesh, pool, rng)
         q = q + off * nq
         lo = _lamp_radiance(hidden.albedo, q, nq, sc.lamp, sc.intensity)
         lo = np.where(_blocked(self.caster, q, np.broadcast_to(sc.lamp, q.shape)), 0.0, lo)
@@ -130,11 +128,11 @@ class DifferentialRenderer:
                                    sc.intensity) * ~_blocked(self.caster, pb, np.broadcast_to(sc.lamp, pb.shape))
             value[live] -= np.where(seen, lb, 0.0)
         rows = area * (value * geo).reshape(-1, samples).mean(1)
-        if negative:
-            rows = rows + self._shadow_term(hidden, obj, samples, pool, rng)
-        rows = self.albedo / np.pi * rows
-        if negative:
-            rows = rows - self.direct * _blocked(obj, self.points, np.broadcast_to(sc.lamp, self.points.shape))
+        if not negative:
+            return self._to_image(self.albedo / np.pi * rows)
+        obj = RayCaster(Scene([Surface(mesh, hidden.albedo, observe=False)]))  # the object alone
+        rows = self.albedo / np.pi * (rows + self._shadow_term(hidden, obj, samples, pool, rng))
+        rows = rows - self.direct * _blocked(obj, self.points, np.broadcast_to(sc.lamp, self.points.shape))
         return self._to_image(rows)
 
     def _shadow_term(self, hidden, obj, samples, pool, rng):
@@ -173,12 +171,6 @@ class DifferentialRenderer:
         value = np.zeros(len(s))
         value[live] = geo[live] * seen
         return -value.reshape(-1, samples).mean(1)
-
-
-def _single(hidden: HiddenObject):
-    from ..scene import Scene, Surface
-
-    return Scene([Surface(hidden.mesh(), hidden.albedo, observe=False)])
 
 
 def temporal_difference(renderer: DifferentialRenderer, before, after, **kwargs) -> np.ndarray:

@@ -18,6 +18,7 @@ import numpy as np
 import trimesh
 
 from ..scene import Camera, Scene, Surface
+from ..transport._embree import RayCaster, pixel_centre_hits
 
 SCENE_CLASSES = ("L", "T", "table")
 # Where a hidden object may stand (polar, about the corner): the label grid covers this range.
@@ -223,7 +224,5 @@ def _hidden_position(rng, p, radius):
 
 def object_visible(scene: CornerScene) -> bool:
     """Does any camera pixel centre see the hidden object (first hit of the primary ray)?"""
-    from ..transport._embree import RayCaster, pixel_centre_hits
-
     hits = pixel_centre_hits(RayCaster(scene.with_object()), scene.camera)
     return bool(np.any(hits.surface == len(scene.meshes)))

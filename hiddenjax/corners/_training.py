@@ -10,7 +10,6 @@ renamed, so an interrupted write never leaves a broken checkpoint).
 
 import dataclasses
 import json
-import os
 from pathlib import Path
 from typing import NamedTuple
 
@@ -21,6 +20,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
+from .._files import atomic_path
 from ._labels import PolarGrid
 from ._network import CornerNet, heatmap_loss, instance_normalize
 
@@ -120,14 +120,12 @@ def save_checkpoint(path, model, opt_state, step: int, losses, validation):
     """Write `(model, optimizer state)` leaves and the progress, atomically (temporary file, then rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
     header = json.dumps(dict(step=int(step), loss=[float(v) for v in losses],
                              validation=[[int(a), float(b)] for a, b in validation])).encode()
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(len(header).to_bytes(8, "little"))
         f.write(header)
         eqx.tree_serialise_leaves(f, (model, opt_state))
-    os.replace(tmp, path)
 
 
 def load_checkpoint(path, model, opt_state):

@@ -45,6 +45,14 @@ class RayCaster:
         d = np.ascontiguousarray(directions, dtype=np.float32)
         return self._embree.run(o, d, query="OCCLUDED") != -1
 
+    def occluded_within(self, origins: np.ndarray, directions: np.ndarray, distance: np.ndarray) -> np.ndarray:
+        """Boolean `(n,)`: does the ray hit a surface closer than `distance` (a shadow ray to a point)?"""
+        if len(origins) == 0:
+            return np.zeros(0, dtype=bool)
+        hits = self.intersect(origins, directions)
+        t = np.linalg.norm(hits.position - origins, axis=1)
+        return (hits.surface >= 0) & (t < distance)
+
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """Closest hit of each ray, with the albedo and a normal facing back along the ray."""
         o = np.ascontiguousarray(origins, dtype=np.float32)

@@ -40,18 +40,9 @@ def render_point_lights(
         # Occlusion only between the point and the light: shorten the ray to length d.
         visible = np.zeros(len(x), dtype=bool)
         idx = np.nonzero(lit)[0]
-        visible[idx] = ~_occluded_before(caster, x[idx], w[idx], d[idx])
+        visible[idx] = ~caster.occluded_within(x[idx], w[idx], d[idx])
         out[hit] += np.where(visible, albedo / np.pi * power * cos / np.maximum(d, 1e-300) ** 2, 0.0)
     return out.reshape(camera.height, camera.width, pixel_samples).mean(axis=2).astype(np.float32)
-
-
-def _occluded_before(caster: RayCaster, origins, directions, distance) -> np.ndarray:
-    """Does the ray hit a surface closer than `distance`?"""
-    if len(origins) == 0:
-        return np.zeros(0, dtype=bool)
-    hits = caster.intersect(origins, directions)
-    t = np.linalg.norm(hits.position - origins, axis=1)
-    return (hits.surface >= 0) & (t < distance)
 
 
 def depth_map(scene: Scene, camera: Camera) -> np.ndarray:
