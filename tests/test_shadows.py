@@ -316,6 +316,26 @@ def test_point_light_renderers_match_the_closed_form_on_a_bare_plane():
     np.testing.assert_allclose(hard, exact, rtol=2e-2)  # box filter vs the pixel centre
 
 
+def test_a_lit_face_of_a_convex_box_is_not_darkened_by_its_own_triangles():
+    """A closed convex surface cannot shadow itself: its points skip its own triangles (otherwise a
+    point on a face sits on the soft edge of that face's shadow volume and gets V = 1/2)."""
+    box = trimesh.creation.box([0.4, 0.2, 0.4])
+    box.apply_translation([0.0, 0.1, 0.0])
+    scene = hj.Scene([hj.Surface(box, 0.6)])
+    assert not scene[0].shadows_itself and hj.Surface(trimesh.creation.annulus(0.1, 0.3, 0.2), 0.5).shadows_itself
+    cam = hj.Camera.look_at([0.0, 1.2, 0.6], [0, 0.2, 0], [0, 1, 0], 30.0, 24, 24)
+    light = np.array([0.1, 0.9, 0.2])
+    shadows = sh.ShadowScene.from_scene(scene, cam)
+    top = np.asarray(shadows.normals)[:, 1] > 0.99
+    assert top.sum() > 50
+    x = np.asarray(shadows.points, np.float64)[top]
+    v = light - x
+    d = np.linalg.norm(v, axis=1)
+    exact = 0.6 / np.pi * v[:, 1] / d**3
+    soft = np.asarray(sh.render_lights(shadows, light[None], temperature=300.0)).reshape(-1)[np.asarray(shadows.pixels)]
+    np.testing.assert_allclose(soft[top], exact, rtol=1e-4)
+
+
 # -- 1D projections and 2D reconstruction (thesis 4.3.3) ---------------------------------------------
 
 

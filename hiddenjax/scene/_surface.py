@@ -75,6 +75,11 @@ class Surface:
             np.all(np.abs(self.normals @ n0) > 1 - 1e-6) and np.all(np.abs((p - p[0]) @ n0) < 1e-6 * size)
         )
 
+    @property
+    def shadows_itself(self) -> bool:
+        """Can one point of the surface shadow another? Not when it is planar or closed and convex."""
+        return not (self.planar or (self.mesh.is_watertight and self.mesh.is_convex))
+
     def bounding_sphere(self):
         """`(centre (3,), radius)` of a sphere enclosing the surface (box centre, half diagonal)."""
         lo, hi = self.triangles.reshape(-1, 3).min(0), self.triangles.reshape(-1, 3).max(0)

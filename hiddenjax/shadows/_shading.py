@@ -44,7 +44,7 @@ class ShadowScene(eqx.Module):
         pixels = _observed_pixels(scene, hits, (camera.height, camera.width), 1, mask, False)
         x = hits.position[pixels] + caster.offset * hits.normal[pixels]
         surface = hits.surface[pixels]
-        planar = [s.planar for s in scene]
+        planar = [not s.shadows_itself for s in scene]
         return cls(
             points=jnp.asarray(x, jnp.float32),
             normals=jnp.asarray(hits.normal[pixels], jnp.float32),

@@ -89,7 +89,7 @@ class SoftTransport(eqx.Module):
         u = stratified_square(np.random.default_rng([seed, 3]), len(columns), int(samples))
         f32 = jnp.float32
         return cls(
-            receivers=Receivers.from_points(x, pts.surface, [s.planar for s in scene], tile=tile),
+            receivers=Receivers.from_points(x, pts.surface, [not s.shadows_itself for s in scene], tile=tile),
             normals=jnp.asarray(normal, f32),
             albedo=jnp.asarray(pts.albedo, f32),
             occluder=Occluder.from_scene(scene, cluster),

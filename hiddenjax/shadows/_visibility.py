@@ -223,8 +223,9 @@ class Receivers(eqx.Module):
 
     `points (T, B, 3)` (padded by repeating a tile's first point), `order (T*B,)` the index of
     each slot in the caller's point array (-1 for padding), `surface (T, B)` each point's
-    surface, `planar (S,)` which surfaces are planar (a planar surface cannot shadow itself,
-    so its own clusters are skipped for its points), `centre (T, 3)`, `radius (T,)` tile bounds.
+    surface, `planar (S,)` which surfaces cannot shadow themselves (planar, or closed and
+    convex: their own clusters are skipped for their points; a point on a face otherwise sits on
+    the soft edge of its own triangle's shadow volume), `centre (T, 3)`, `radius (T,)` tile bounds.
     """
 
     points: Float[Array, "T B 3"]
@@ -338,7 +339,7 @@ def culled_log_visibility(
     T_, B = receivers.points.shape[:2]
     C = occluder.triangles.shape[0]
     active = active_pairs(receivers, occluder, light, margin)
-    # A planar surface cannot shadow itself: its points skip its own clusters.
+    # A surface that cannot shadow itself (planar, closed convex): its points skip its own clusters.
     own_surface = jnp.asarray(
         [s if 0 <= s < len(receivers.planar) and receivers.planar[s] else -2 for s in occluder.surface]
     )  # (C,)

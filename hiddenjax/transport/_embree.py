@@ -49,9 +49,10 @@ class RayCaster:
         """Boolean `(n,)`: does the ray hit a surface closer than `distance` (a shadow ray to a point)?"""
         if len(origins) == 0:
             return np.zeros(0, dtype=bool)
-        hits = self.intersect(origins, directions)
-        t = np.linalg.norm(hits.position - origins, axis=1)
-        return (hits.surface >= 0) & (t < distance)
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        t = np.ascontiguousarray(np.broadcast_to(distance, (len(o),)), dtype=np.float32)
+        return self._embree.run(o, d, dists=t, query="OCCLUDED") != -1
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """Closest hit of each ray, with the albedo and a normal facing back along the ray."""
