@@ -3,11 +3,11 @@
 Everything public is re-exported here; implementation modules are private.
 """
 
+from . import solvers as solvers  # first: solvers and shadows import each other's modules
 from . import corners as corners
 from . import cues as cues
 from . import io as io
 from . import metrics as metrics
-from . import solvers as solvers
 from . import scene as scenes
 from . import shadows as shadows
 from .io import load_scene as load_scene

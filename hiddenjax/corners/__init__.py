@@ -10,6 +10,8 @@ from ._scenes import random_corner_scene as random_corner_scene
 from ._render import DifferentialRenderer as DifferentialRenderer
 from ._render import render_full as render_full
 from ._render import temporal_difference as temporal_difference
+from ._soft import SoftCornerRenderer as SoftCornerRenderer
+from ._soft import cylinder_quadrature as cylinder_quadrature
 from ._labels import GaussianFit as GaussianFit
 from ._labels import PolarGrid as PolarGrid
 from ._labels import fit_gaussian as fit_gaussian

@@ -1,7 +1,9 @@
 """Refining a predicted location against a renderer (thesis 3.5): the data-consistency loss of eq. 3.2.
 
 `rendering_loss` wraps the (non-differentiable) Embree `DifferentialRenderer` in `jax.pure_callback`
-so that `hiddenjax.solvers.variational_minimize` runs jitted around it. The object's brightness is
+so that `hiddenjax.solvers.variational_minimize` runs jitted around it (score-function gradients);
+with a `SoftCornerRenderer` the loss is pure JAX and the search uses pathwise gradients through
+the sigmoid shadows instead. The object's brightness is
 unknown (its albedo, the lamp), so the loss uses the best intensity scale in closed form:
 `L_r(z) = min_a ||a r(z) - x||^2 / ||x||^2 = 1 - <r, x>^2 / (||r||^2 ||x||^2)`, in `[0, 1]`.
 Both images are box-averaged over `block x block` pixels first: Monte Carlo noise inflates
@@ -16,6 +18,7 @@ import numpy as np
 
 from ..solvers import VariationalOptimizer, VariationalSolution, variational_minimize
 from ._render import DifferentialRenderer
+from ._soft import SoftCornerRenderer
 
 
 def _blocks(image: np.ndarray, block: int) -> np.ndarray:
@@ -32,17 +35,33 @@ def scale_free_loss(rendered: np.ndarray, observed: np.ndarray, block: int = 1) 
     return 1.0 if rr <= 0 or xx <= 0 else float(1.0 - (r @ x) ** 2 / (rr * xx))
 
 
-def rendering_loss(renderer: DifferentialRenderer, observed, *, samples: int = 32, seed: int = 0,
-                   negative: bool = False, block: int = 4):
+def _soft_loss(renderer: SoftCornerRenderer, observed, block: int):
+    x = jnp.asarray(_blocks(np.asarray(observed, np.float64), block).ravel(), jnp.float32)
+
+    def one(z):
+        r = renderer.render(z)
+        H, W = r.shape
+        h, w = H // block * block, W // block * block
+        r = r[:h, :w].reshape(h // block, block, w // block, block).mean((1, 3)).ravel()
+        return 1.0 - (r @ x) ** 2 / ((r @ r) * (x @ x) + 1e-30)
+
+    return lambda zs: jax.lax.map(one, zs)  # lax.map, not vmap: keeps the visibility culling's lax.cond
+
+
+def rendering_loss(renderer: DifferentialRenderer | SoftCornerRenderer, observed, *, samples: int = 32,
+                   seed: int = 0, negative: bool = False, block: int = 4):
     """A batched JAX loss `(n, 2) -> (n,)` over candidate positions `(x, z)` (metres).
 
-    Every candidate is rendered with the same `seed` (common random numbers: the loss surface is
-    not re-noised between candidates). Positions where the object would not fit in the hidden
-    corridor score the worst value, 1.
+    With the Embree renderer, every candidate is rendered with the same `seed` (common random
+    numbers: the loss surface is not re-noised between candidates), and positions where the
+    object would not fit in the hidden corridor score the worst value, 1. With a
+    `SoftCornerRenderer` the loss is differentiable (`samples`, `seed`, `negative` do not apply).
     """
     observed = np.asarray(observed, np.float64)
     if observed.shape != renderer.shape:
         raise ValueError(f"observed image {observed.shape} does not match the renderer's camera {renderer.shape}")
+    if isinstance(renderer, SoftCornerRenderer):
+        return _soft_loss(renderer, observed, block)
     p, r = renderer.scene.params, renderer.scene.hidden.radius
 
     def inside(x, z):
@@ -60,13 +79,17 @@ def rendering_loss(renderer: DifferentialRenderer, observed, *, samples: int = 3
     return loss
 
 
-def refine_location(renderer: DifferentialRenderer, observed, mean, cov, *, key, steps: int = 30,
-                    optimizer: VariationalOptimizer = VariationalOptimizer(), samples: int = 32,
+def refine_location(renderer: DifferentialRenderer | SoftCornerRenderer, observed, mean, cov, *, key,
+                    steps: int = 30, optimizer: VariationalOptimizer | None = None, samples: int = 32,
                     negative: bool = False, block: int = 4) -> VariationalSolution:
     """Variational refinement (eq. 3.2-3.12) of a location `mean (2,)` with uncertainty `cov (2, 2)` m^2.
 
-    Each step renders `optimizer.samples + 1` candidates with Embree; the update itself is jitted.
+    Each step renders `optimizer.samples + 1` candidates: with Embree (`DifferentialRenderer`)
+    through a callback and score-function gradients; with a `SoftCornerRenderer` in JAX and
+    pathwise gradients (the default optimizer for each). The update itself is jitted.
     """
+    if optimizer is None:
+        optimizer = VariationalOptimizer(gradient="pathwise" if isinstance(renderer, SoftCornerRenderer) else "score")
     loss = rendering_loss(renderer, observed, samples=samples, negative=negative, block=block)
     solve = jax.jit(lambda m, c, k: variational_minimize(loss, m, c, key=k, steps=steps, optimizer=optimizer))
     return solve(jnp.asarray(mean, jnp.float32), jnp.asarray(cov, jnp.float32), key)

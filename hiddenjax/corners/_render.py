@@ -87,15 +87,19 @@ class DifferentialRenderer:
         out[self.valid] = rows
         return out.reshape(self.shape)
 
-    def render(self, position=None, *, samples: int = 16, seed: int = 0, negative: bool = False,
+    def render(self, position=None, *, samples: int = 32, seed: int = 0, negative: bool = False,
                pool: int = 4096) -> np.ndarray:
         """The differential image `(H, W)` float32 with the object at `position (x, z)` (default: the scene's).
 
         **Arguments:**
-        - `samples`: object points (and shadow points) per pixel; the noise falls as `1/sqrt`.
+        - `samples`: points on the object (and in its shadow) that every pixel gathers from, like
+          virtual point lights; drawn from `pool` uniform points by systematic resampling in
+          proportion to their lamp-lit radiance, so every one of them emits. All pixels share them:
+          the noise is a smooth, low-frequency error (a few overlapping shadows), not per-pixel
+          speckle, and falls as `1/sqrt(samples)`.
         - `negative`: add the negative terms (b)-(d), making the image the exact one-bounce
           difference; the default `False` is the thesis' model, the object as the only emitter.
-        - `pool`: points drawn on the object (and in its shadow) per image, shared by the pixels.
+        - `pool`: candidate points drawn on the object (and in its shadow) per image.
         """
         if samples < 1:
             raise ValueError(f"samples must be >= 1, got {samples}")
@@ -104,36 +108,67 @@ class DifferentialRenderer:
         rng = np.random.default_rng([seed, 0xC0])
         mesh = hidden.mesh()
         off = self.caster.offset
-        # (a), (b): a pool of object points with their lamp-lit radiance, then `samples` per pixel.
+        # (a), (b): candidate object points with their lamp-lit radiance, resampled to `samples` emitters.
         q, nq, area = object_samples(mesh, pool, rng)
-        q = q + off * nq
+        # Ordered by the angle about the cylinder's axis, the systematic draw below is stratified
+        # around the object as well as by radiance (and moves smoothly when the object moves).
+        order = np.argsort(np.arctan2(q[:, 2] - hidden.position[1], q[:, 0] - hidden.position[0]), kind="stable")
+        q, nq = q[order] + off * nq[order], nq[order]
         lo = _lamp_radiance(hidden.albedo, q, nq, sc.lamp, sc.intensity)
         lo = np.where(_blocked(self.caster, q, np.broadcast_to(sc.lamp, q.shape)), 0.0, lo)
-        s = np.repeat(self.points, samples, 0)
-        ns = np.repeat(self.normals, samples, 0)
-        k = rng.integers(0, pool, len(s))
-        w, d = _unit(q[k] - s)
-        geo = np.maximum(np.sum(ns * w, -1), 0) * np.maximum(-np.sum(nq[k] * w, -1), 0) / d**2
-        live = geo > 0
-        hits = self.caster.intersect(s[live], w[live])
-        t = np.linalg.norm(hits.position - s[live], axis=-1)
-        seen = (hits.surface < 0) | (t > d[live])
-        value = np.zeros(len(s))
-        value[live] = np.where(seen, lo[k][live], 0.0)
+        # (b) also counts unlit object points (they hide lit background): keep them drawable then.
         if negative:
-            b = hits.surface >= 0
-            lb = np.zeros(len(t))
+            density = lo + (np.mean(lo) if np.any(lo > 0) else 1.0)
+        elif np.any(lo > 0):
+            density = lo
+        else:  # the lamp sees none of the object: it emits nothing
+            return self._to_image(np.zeros(len(self.points)))
+        k, coef = _resample(density, samples, len(self.points), rng)
+
+        def emitted(s, w, d, m):
+            if not negative:
+                return lo[m] * ~self.caster.occluded_within(s, w, d * (1 - 1e-6))
+            hits = self.caster.intersect(s, w)
+            t = np.linalg.norm(hits.position - s, axis=-1)
+            seen = (hits.surface < 0) | (t > d)
+            b = seen & (hits.surface >= 0)
+            lb = np.zeros(len(s))
             pb = hits.position[b] + off * hits.normal[b]
             lb[b] = _lamp_radiance(sc.albedo_at(hits.surface[b], hits.position[b]), pb, hits.normal[b], sc.lamp,
                                    sc.intensity) * ~_blocked(self.caster, pb, np.broadcast_to(sc.lamp, pb.shape))
-            value[live] -= np.where(seen, lb, 0.0)
-        rows = area * (value * geo).reshape(-1, samples).mean(1)
+            return seen * lo[m] - lb
+
+        rows = self._gather(q, nq, k, area / pool * coef, emitted)
         if not negative:
             return self._to_image(self.albedo / np.pi * rows)
         obj = RayCaster(Scene([Surface(mesh, hidden.albedo, observe=False)]))  # the object alone
         rows = self.albedo / np.pi * (rows + self._shadow_term(hidden, obj, samples, pool, rng))
         rows = rows - self.direct * _blocked(obj, self.points, np.broadcast_to(sc.lamp, self.points.shape))
         return self._to_image(rows)
+
+    def _gather(self, y, ny, k, coef, value, pairs: int = 1 << 19) -> np.ndarray:
+        """`sum_m coef[i, m] G(s_i, y[k[i, m]]) value(...)` for every visible point `s_i`, with the
+        geometry term `G = max(0, n_s.w) max(0, -n_y.w) / d^2` (`w`, `d` the unit direction and
+        distance from `s_i` to the point).
+
+        `value(s, w, d, j)` gets only the pairs with `G > 0` (`j` indexes `y`; its visibility rays
+        are the cost); pairs are processed in chunks of at most `pairs` (bounded memory).
+        """
+        n, count = k.shape
+        rows = np.zeros(n)
+        step = max(1, pairs // max(n, 1))
+        for first in range(0, count, step):
+            kk = k[:, first:first + step]
+            diff = y[kk] - self.points[:, None]  # (n, c, 3)
+            cos_s = np.einsum("ni,nci->nc", self.normals, diff)  # times d
+            cos_y = -np.einsum("nci,nci->nc", ny[kk], diff)  # times d
+            live = (cos_s > 0) & (cos_y > 0)
+            i, j = np.nonzero(live)
+            d2 = np.einsum("ci,ci->c", diff[live], diff[live])
+            d = np.sqrt(d2)
+            rows += np.bincount(i, coef[:, first:first + step][live] * cos_s[live] * cos_y[live] / d2**2
+                                * value(self.points[i], diff[live] / d[:, None], d, kk[live]), minlength=n)
+        return rows
 
     def _shadow_term(self, hidden, obj, samples, pool, rng):
         """(c): minus the lamp light that the object's shadow takes from the background points `s` sees."""
@@ -150,27 +185,37 @@ class DifferentialRenderer:
         u /= np.linalg.norm(u)
         v = np.cross(axis, u)
         sz = np.sqrt(1 - cz**2)
+        phi = np.sort(phi)  # stratifies the systematic draw around the cone
         dirs = cz[:, None] * axis + (sz * np.cos(phi))[:, None] * u + (sz * np.sin(phi))[:, None] * v
         origin = np.broadcast_to(sc.lamp, dirs.shape)
         ho, hb = obj.intersect(origin, dirs), self.caster.intersect(origin, dirs)
         to = np.linalg.norm(ho.position - origin, axis=-1)
         tb = np.linalg.norm(hb.position - origin, axis=-1)
         ok = (ho.surface >= 0) & (hb.surface >= 0) & (tb > to)
+        if not np.any(ok):
+            return np.zeros(len(self.points))
         b = hb.position + self.caster.offset * hb.normal
         # weight = L_lost(b) / p(b) = rho_b/pi * I * solid (the cos_b / t^2 cancel)
         weight = np.zeros(pool)
         weight[ok] = sc.albedo_at(hb.surface[ok], hb.position[ok]) / np.pi * sc.intensity * solid
-        s = np.repeat(self.points, samples, 0)
-        ns = np.repeat(self.normals, samples, 0)
-        k = rng.integers(0, pool, len(s))
-        w, d = _unit(b[k] - s)
-        geo = np.maximum(np.sum(ns * w, -1), 0) * np.maximum(-np.sum(hb.normal[k] * w, -1), 0) / d**2 * weight[k]
-        live = geo > 0
-        sl, bl = s[live], b[k][live]
-        seen = ~_blocked(self.caster, sl, bl) & ~_blocked(obj, sl, bl)
-        value = np.zeros(len(s))
-        value[live] = geo[live] * seen
-        return -value.reshape(-1, samples).mean(1)
+        k, coef = _resample(weight, samples, len(self.points), rng)
+
+        def lost(s, w, d, m):
+            return weight[m] * ~(self.caster.occluded_within(s, w, d * (1 - 1e-6))
+                                    | obj.occluded_within(s, w, d * (1 - 1e-6)))
+
+        return -self._gather(b, hb.normal, k, coef / pool, lost)
+
+
+def _resample(weights: np.ndarray, count: int, rows: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """Systematic resampling, independently for each of `rows` pixels: `count` indices `(rows, count)`
+    drawn in proportion to `weights >= 0`, one in each of `count` equal strata of the weight (the
+    pool is ordered around the object, so this stratifies in space too), and the importance factor
+    `1 / (count p_k)` of each: `sum_k f_k` is estimated without bias by `sum_m f_{k_m} / (count p_{k_m})`."""
+    p = weights / weights.sum()
+    u = (rng.random((rows, 1)) + np.arange(count)) / count
+    k = np.minimum(np.searchsorted(np.cumsum(p), u, side="right"), len(p) - 1)
+    return k, 1.0 / (count * p[k])
 
 
 def temporal_difference(renderer: DifferentialRenderer, before, after, **kwargs) -> np.ndarray:

@@ -29,6 +29,7 @@ from ._robust import taylor_operator as taylor_operator
 from ._variational import GaussianParams as GaussianParams
 from ._variational import VariationalOptimizer as VariationalOptimizer
 from ._variational import VariationalSolution as VariationalSolution
+from ._variational import pathwise_gradient as pathwise_gradient
 from ._variational import score_function_gradient as score_function_gradient
 from ._variational import variational_minimize as variational_minimize
 from ._variational import variational_step as variational_step
