@@ -40,7 +40,7 @@ class CornerDataset(NamedTuple):
         return part(slice(0, k)), part(slice(k, n))
 
 
-def render_sample(kind: str, seed: int, size: int = 128, samples: int = 8, negative: bool = False):
+def render_sample(kind: str, seed: int, size: int = 128, samples: int = 16, negative: bool = False):
     """`(image (size, size), position (2,), radius)` of one random scene (see the module docstring)."""
     scene = random_corner_scene(kind, seed, width=size, height=size)
     image = DifferentialRenderer(scene).render(samples=samples, seed=seed, negative=negative)
@@ -52,13 +52,14 @@ def _render_many(args):
     return [render_sample(kind, s, size, samples, negative) for s in seeds]
 
 
-def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, samples: int = 8,
+def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, samples: int = 16,
                      negative: bool = False, workers: int | None = None, cache=None,
                      progress: bool = True) -> CornerDataset:
     """Render `count` random `kind` scenes (`'L'`, `'T'`, `'table'`) in `workers` processes.
 
     **Arguments:**
-    - `samples`: object points per pixel (render noise; the training noise augmentation dominates).
+    - `samples`: object points per pixel (`DifferentialRenderer.render`; the render noise falls
+      as `1/sqrt(samples)`).
     - `negative`: include the negative terms of the exact one-bounce difference (see
       `DifferentialRenderer.render`); the default is the thesis' object-as-only-emitter model.
     - `cache`: an `.npz` path: loaded when it exists with the same configuration, written otherwise.
