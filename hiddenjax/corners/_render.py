@@ -92,11 +92,11 @@ class DifferentialRenderer:
         """The differential image `(H, W)` float32 with the object at `position (x, z)` (default: the scene's).
 
         **Arguments:**
-        - `samples`: points on the object (and in its shadow) that every pixel gathers from, like
-          virtual point lights; drawn from `pool` uniform points by systematic resampling in
-          proportion to their lamp-lit radiance, so every one of them emits. All pixels share them:
-          the noise is a smooth, low-frequency error (a few overlapping shadows), not per-pixel
-          speckle, and falls as `1/sqrt(samples)`.
+        - `samples`: points on the object (and in its shadow) that each pixel gathers from, drawn
+          for each pixel from `pool` uniform points by systematic resampling in proportion to their
+          lamp-lit radiance (the pool ordered around the object: the draw is stratified in space
+          too), so no sample is wasted on the unlit side. Unbiased; the noise falls as
+          `1/sqrt(samples)` and is independent between pixels.
         - `negative`: add the negative terms (b)-(d), making the image the exact one-bounce
           difference; the default `False` is the thesis' model, the object as the only emitter.
         - `pool`: candidate points drawn on the object (and in its shadow) per image.
