@@ -41,14 +41,14 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out/around_the_corner"))
     parser.add_argument("--quick", action="store_true", help="tiny configuration (about a minute)")
     parser.add_argument("--kinds", nargs="+", default=list(hc.SCENE_CLASSES), choices=hc.SCENE_CLASSES)
-    parser.add_argument("--count", type=int, default=None, help="rendered scenes per class (default 8000)")
+    parser.add_argument("--count", type=int, default=None, help="rendered scenes per class (default 16000)")
     parser.add_argument("--steps", type=int, default=None, help="training steps per class (default 3000)")
     parser.add_argument("--workers", type=int, default=None, help="rendering processes (default: all cores)")
     parser.add_argument("--test-scenes", type=int, default=None, help="new scenes refined per class (default 4)")
     args = parser.parse_args(argv)
     quick = args.quick
     size = 32 if quick else 128
-    count = args.count or (96 if quick else 8000)
+    count = args.count or (96 if quick else 16000)
     config = hc.TrainConfig(steps=args.steps or (20 if quick else 3000), batch=32 if quick else 64,
                             checkpoint_every=10 if quick else 250)
     n_test = args.test_scenes or (1 if quick else 4)
