@@ -21,7 +21,8 @@ from ._render import DifferentialRenderer
 from ._soft import SoftCornerRenderer
 
 
-def _blocks(image: np.ndarray, block: int) -> np.ndarray:
+def _blocks(image, block: int):
+    """Mean over `block x block` tiles (numpy or JAX arrays; a ragged edge is dropped)."""
     H, W = image.shape
     h, w = H // block * block, W // block * block
     return image[:h, :w].reshape(h // block, block, w // block, block).mean((1, 3))
@@ -39,10 +40,7 @@ def _soft_loss(renderer: SoftCornerRenderer, observed, block: int):
     x = jnp.asarray(_blocks(np.asarray(observed, np.float64), block).ravel(), jnp.float32)
 
     def one(z):
-        r = renderer.render(z)
-        H, W = r.shape
-        h, w = H // block * block, W // block * block
-        r = r[:h, :w].reshape(h // block, block, w // block, block).mean((1, 3)).ravel()
+        r = _blocks(renderer.render(z), block).ravel()
         return 1.0 - (r @ x) ** 2 / ((r @ r) * (x @ x) + 1e-30)
 
     return lambda zs: jax.lax.map(one, zs)  # lax.map, not vmap: keeps the visibility culling's lax.cond
