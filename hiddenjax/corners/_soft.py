@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..shadows import ShadowScene, culled_log_visibility
+from ..shadows import ShadowScene, culled_log_visibility, shading
 from ..transport._embree import RayCaster, pixel_centre_hits
 from ._scenes import CornerScene
 
@@ -85,9 +85,7 @@ class SoftCornerRenderer(eqx.Module):
         position = jnp.asarray(position, jnp.float32)
         q = self.local_points + jnp.stack([position[0], 0.0, position[1]])[None]
         nq = self.local_normals
-        v = self.lamp[None] - q
-        d2 = jnp.sum(v * v, -1)
-        lit = self.object_albedo / jnp.pi * self.intensity * jnp.maximum(jnp.sum(nq * v, -1), 0) / d2**1.5
+        lit = shading(q, nq, self.object_albedo, self.lamp, self.intensity)  # the lamp-lit radiance L(q)
         sh = self.shadows
 
         def one(args):
