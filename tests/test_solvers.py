@@ -14,9 +14,10 @@ from hiddenjax.transport import TransportMatrix
 def random_problem(seed, P=60, grid=hj.EnvGrid(4, 8), dtype=jnp.float64):
     rng = np.random.default_rng(seed)
     A = np.abs(rng.normal(size=(P, grid.size))) * (rng.random((P, grid.size)) < 0.5)
+    shape = (P // 10, 10)
     T = TransportMatrix(A=jnp.asarray(A, dtype), albedo=jnp.ones(P, dtype), pixels=jnp.arange(P),
-                        grid=grid, image_shape=(6, 10))
-    image = (rng.normal(size=P) + 0.5).reshape(6, 10)  # signed data: many constraints are active
+                        grid=grid, image_shape=shape)
+    image = (rng.normal(size=P) + 0.5).reshape(shape)  # signed data: many constraints are active
     return T, A, image
 
 
@@ -175,6 +176,41 @@ def test_operator_reuses_the_factorization_for_many_images(x64):
     assert G.shape == (T.grid.size, A.shape[0])
     free = hj.solve_illumination(T, images[2], smooth=0.01, ridge=0.001, nonneg=False)
     assert np.allclose(G @ T.image_to_rows(images[2]), np.asarray(free.env).ravel(), rtol=1e-8, atol=1e-12)
+
+
+def test_exact_solve_on_a_large_grid_factorizes_only_the_free_block(x64):
+    T, A, image = random_problem(3, P=400, grid=hj.EnvGrid(12, 24))  # N = 288: free blocks of 64..256
+    sol = hj.solve_illumination(T, image, smooth=0.01, ridge=0.001)
+    x = np.asarray(sol.env).ravel()
+    assert np.sum(x > 0) < 256  # the steps took the gathered (not the full 288) path
+    ref, M, b = scipy_nnls(A, image.ravel(), T.grid, float(sol.smooth), float(sol.ridge))
+    assert np.linalg.norm(x - ref) <= 1e-6 * np.linalg.norm(ref)
+    assert float(sol.kkt_residual) < 1e-10 and int(sol.result) == 0
+
+
+def test_solve_many_equals_single_solves(x64):
+    T, A, image = random_problem(4, P=400, grid=hj.EnvGrid(12, 24))
+    op = hj.solvers.IlluminationOperator.build(T, smooth=0.01, ridge=0.001)
+    rng = np.random.default_rng(3)
+    stack = jnp.asarray(image[None, :, :, None] + rng.normal(0, 0.3, size=(4,) + image.shape + (2,)))  # 4 x RGB-like
+    many = jax.jit(lambda op, Y: op.solve_many(Y))(op, stack)
+    assert many.env.shape == (4,) + T.grid.shape + (2,) and many.steps.shape == many.kkt_residual.shape == (4, 2)
+    for k in range(4):
+        single = op.solve(stack[k])
+        for field in ("env", "objective", "kkt_residual", "steps"):
+            assert np.allclose(getattr(many, field)[k], getattr(single, field), rtol=1e-9, atol=1e-12), field
+    grey = op.solve_many(stack[..., 0], nonneg=False)  # (M, H, W) stacks, signed maps
+    assert np.allclose(grey.env[1], op.solve(stack[1, ..., 0], nonneg=False).env, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="stacks"):
+        op.solve_many(image)
+
+
+def test_gram_matrix_skips_zero_blocks_exactly():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(50, 700)).astype(np.float32)
+    A[:, 256:600] = 0  # a zero block and a ragged last block
+    G = np.asarray(hj.solvers.gram_matrix(jnp.asarray(A)))
+    assert np.allclose(G, A.T.astype(np.float64) @ A, rtol=1e-5, atol=1e-4) and np.array_equal(G, G.T)
 
 
 @pytest.fixture(scope="module")

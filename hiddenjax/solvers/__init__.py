@@ -6,6 +6,7 @@ from ._illumination import DampedNewton as DampedNewton
 from ._illumination import IlluminationOperator as IlluminationOperator
 from ._illumination import IlluminationSolution as IlluminationSolution
 from ._illumination import ProjectedNewton as ProjectedNewton
+from ._illumination import gram_matrix as gram_matrix
 from ._illumination import normal_matrix as normal_matrix
 from ._illumination import prior_matrix as prior_matrix
 from ._illumination import regularization_weights as regularization_weights

@@ -125,7 +125,7 @@ def solve_albedo_illumination(
         B = sum(a.T @ a for a in Ars) + R  # eq. 5.5, summed over views
         factor = jnp.linalg.cholesky(B)
         C = sum(y @ a for y, a in zip(Ys, Ars))  # (L, N)
-        X = jax.vmap(lambda c: _solve(B, factor, c, ProjectedNewton(), True)[0])(C)
+        X = _solve(B, factor, C.T, ProjectedNewton(), True)[0].T
         return eqx.error_if(X, ~jnp.all(jnp.isfinite(X)), NOT_POSITIVE_DEFINITE)
 
     def rho_star(v, X, rho0):

@@ -4,6 +4,8 @@
 `min_x x^T B x - 2 c^T x` with `B = A^T A + ls D^T D + lr I` (eq. 5.13) and `c = A^T y`.
 """
 
+from functools import partial
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -29,9 +31,10 @@ SUCCESS, MAX_STEPS = 0, 1
 class ProjectedNewton(eqx.Module):
     """Exact non-negative solve: projected Newton with an active set (Bertsekas, 1982).
 
-    Each step solves the normal equations restricted to the free set `{x > 0 or grad < 0}`
-    (a Cholesky factorization of the masked `B`) and takes the longest step along the projected
-    path that decreases the objective (Armijo backtracking). It stops when the KKT residual
+    Each step solves the normal equations restricted to the free set `{x > 0 or grad < 0}` (a
+    Cholesky factorization of the free block of `B` only, gathered into the next of a few fixed
+    sizes) and takes the longest step along the projected path that decreases the objective
+    (backtracking on the exact change of the objective, which float32 resolves near the optimum). It stops when the KKT residual
     `max |min(x, B x - c)|` falls below `rtol * max |c|`: then `x` is optimal to that tolerance.
     `rtol=None` picks the round-off floor of the dtype: 1e-4 in float32 (a 2048-term product
     already carries ~1e-5 relative error), 1e-10 in float64.
@@ -93,6 +96,25 @@ def regularization_weights(T, smooth, ridge, absolute: bool = False):
     return smooth * scale, ridge * scale
 
 
+def gram_matrix(A: Float[Array, "P N"], block: int = 256) -> Float[Array, "N N"]:
+    """`A^T A`, by column blocks: the blocks on and above the diagonal, skipping all-zero column blocks.
+
+    A transport matrix of an object on a plane has zero columns wherever the plane hides the sky
+    (the lower hemisphere): on the teapot fixture this is 3.3x faster than `A.T @ A`.
+    """
+    edges = list(range(0, A.shape[1], block)) + [A.shape[1]]
+    cols = [A[:, a:b] for a, b in zip(edges[:-1], edges[1:])]
+    lit = [jnp.any(c != 0) for c in cols]
+    G = [[None] * len(cols) for _ in cols]
+    for i, ci in enumerate(cols):
+        for j in range(i, len(cols)):
+            cj = cols[j]
+            G[i][j] = jax.lax.cond(lit[i] & lit[j], lambda a, b: a.T @ b,
+                                   lambda a, b: jnp.zeros((a.shape[1], b.shape[1]), A.dtype), ci, cj)
+            G[j][i] = G[i][j].T
+    return jnp.block(G)
+
+
 def prior_matrix(grid, smooth, ridge, dtype=jnp.float32) -> Float[Array, "N N"]:
     """`R = smooth D^T D + ridge I` with absolute weights, `(N, N)`."""
     eye = jnp.eye(grid.size, dtype=dtype)
@@ -102,14 +124,15 @@ def prior_matrix(grid, smooth, ridge, dtype=jnp.float32) -> Float[Array, "N N"]:
 def normal_matrix(T, smooth, ridge) -> Float[Array, "N N"]:
     """`B = sum over views of A^T A + smooth D^T D + ridge I` (eq. 5.13), absolute weights, `(N, N)`."""
     Ts = views(T)
-    return sum(t.A.T @ t.A for t in Ts) + prior_matrix(Ts[0].grid, smooth, ridge, Ts[0].A.dtype)
+    return sum(gram_matrix(t.A) for t in Ts) + prior_matrix(Ts[0].grid, smooth, ridge, Ts[0].A.dtype)
 
 
 class IlluminationOperator(eqx.Module):
     """The normal equations of eq. 5.3 for one scene (one or several views) and weights, formed once.
 
     `B = sum_v A_v^T A_v + ls D^T D + lr I` (eq. 5.13) and its Cholesky factor are reused by every
-    image: `op.solve(image)` for one photo (vmap it over a stack: a video, several lightings) and
+    image: `op.solve(image)` for one photo, `op.solve_many(images)` for a stack (a video, several
+    lightings; faster than `jax.vmap(op.solve)`, which also works), and
     `op.inverse()` for `G = B^-1 A^T`, the regularized inverse of eq. 5.9, so that the
     unconstrained estimate of a new image is the matrix product `G y`. With several views, one
     env map explains all of them (`solve` then takes one image per view).
@@ -125,7 +148,7 @@ class IlluminationOperator(eqx.Module):
     def build(cls, T, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, absolute: bool = False):
         """From a `TransportMatrix` or a sequence of them (several viewpoints)."""
         Ts = views(T)
-        return cls.from_gram(Ts, sum(t.A.T @ t.A for t in Ts), smooth, ridge, absolute)
+        return cls.from_gram(Ts, sum(gram_matrix(t.A) for t in Ts), smooth, ridge, absolute)
 
     @classmethod
     def from_gram(cls, T, gram, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, absolute: bool = False):
@@ -161,9 +184,8 @@ class IlluminationOperator(eqx.Module):
         ys = [_check_image(t, im).astype(t.A.dtype) for t, im in zip(self.views, images)]
         if len({y.shape[1:] for y in ys}) != 1:
             raise ValueError("all views' images must have the same number of channels")
-        c = sum(t.A.T @ y for t, y in zip(self.views, ys))
-        one = lambda ck: _solve(self.B, self.factor, ck, solver, nonneg)
-        x, steps, result = one(c) if c.ndim == 1 else jax.vmap(one, in_axes=1, out_axes=-1)(c)
+        c = sum(jnp.einsum("pn,p...->n...", t.A, y) for t, y in zip(self.views, ys))  # not A.T @ y: 10x slower on CPU
+        x, steps, result = _solve(self.B, self.factor, c, solver, nonneg)
         B = self.B
         objective = jnp.einsum("n...,n...->...", x, jnp.einsum("mn,n...->m...", B, x))
         objective = objective - 2 * jnp.einsum("n...,n...->...", c, x) + sum(jnp.sum(y * y, 0) for y in ys)
@@ -173,6 +195,26 @@ class IlluminationOperator(eqx.Module):
                              "before the KKT residual met rtol; raise max_steps, or pass throw=False")
         env = x.reshape(self.views[0].grid.shape + x.shape[1:])
         return IlluminationSolution(env, objective, kkt, steps, result, self.smooth, self.ridge)
+
+    def solve_many(self, images, nonneg: bool = True, solver=None, throw: bool = True) -> IlluminationSolution:
+        """`solve` for a stack `images (M, H, W[, C])` (a sequence of stacks, one per view): a video, lightings.
+
+        The fields gain a leading `M` axis (`smooth`, `ridge` stay scalars). The same as
+        `jax.vmap(op.solve)(images)`, but faster: the images become columns of one problem, so every
+        unconstrained start comes from one triangular solve, and each image's projected Newton steps
+        factorize only its own free block (under `vmap`, the choice of block size runs every size).
+        """
+        stacks = [jnp.asarray(s) for s in ((images,) if len(self.views) == 1 else tuple(images))]
+        if any(s.ndim not in (3, 4) for s in stacks) or len({s.shape[0] for s in stacks}) != 1:
+            raise ValueError(f"images must be (M, H, W) or (M, H, W, C) stacks of one length M, got shapes "
+                             f"{[s.shape for s in stacks]}")
+        M, channels = stacks[0].shape[0], stacks[0].shape[3:]
+        columns = [jnp.moveaxis(s, 0, -1).reshape(s.shape[1:3] + (-1,)) for s in stacks]  # (H, W, C * M)
+        sol = self.solve(columns[0] if len(self.views) == 1 else columns, nonneg, solver, throw)
+        unstack = lambda a, lead: jnp.moveaxis(a.reshape(a.shape[:lead] + channels + (M,)), -1, 0)
+        return eqx.tree_at(lambda s: (s.env, s.objective, s.kkt_residual, s.steps, s.result), sol,
+                           (unstack(sol.env, 2), *(unstack(a, 0) for a in (sol.objective, sol.kkt_residual,
+                                                                         sol.steps, sol.result))))
 
 
 def solve_illumination(
@@ -212,15 +254,34 @@ def _kkt_residual(B, c, x, nonneg):
 
 
 def _solve(B, factor, c, solver, nonneg):
-    """One channel: `x (N,)`, steps, result code. `factor` is B's lower Cholesky factor."""
+    """`c (N,)` or `(N, K)`: `x`, steps and result code per column. `factor` is B's lower Cholesky factor.
+
+    The unconstrained solutions of all columns come from one triangular solve; the non-negative
+    solves then run one column at a time (`lax.map`, not `vmap`: under `vmap` the per-step choice of
+    the free block's size, a `lax.switch`, would run every size).
+    """
+    if not isinstance(solver, (ProjectedNewton, DampedNewton)):
+        raise ValueError(f"solver must be ProjectedNewton or DampedNewton, got {type(solver).__name__}")
     unconstrained = jax.scipy.linalg.cho_solve((factor, True), c)
     if not nonneg:
-        return unconstrained, jnp.array(1), jnp.array(SUCCESS)
+        ones = jnp.ones(c.shape[1:], jnp.int32)
+        return unconstrained, ones, ones * SUCCESS
     if isinstance(solver, DampedNewton):
-        return _damped(unconstrained, solver)
-    if isinstance(solver, ProjectedNewton):
-        return _projected_newton(B, c, unconstrained, solver)
-    raise ValueError(f"solver must be ProjectedNewton or DampedNewton, got {type(solver).__name__}")
+        one = lambda cu: _damped(cu[1], solver)
+    else:
+        one = lambda cu: _projected_newton(B, cu[0], cu[1], solver)
+    return one((c, unconstrained)) if c.ndim == 1 else _columns(jax.lax.map(one, (c.T, unconstrained.T)))
+
+
+def _columns(mapped):
+    """Outputs of a `lax.map` over columns, with the column axis moved last."""
+    return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 0, -1), mapped)
+
+
+def _tolerance(rtol, c):
+    """Absolute KKT tolerance: `rtol max|c|`; `rtol=None` is the dtype's round-off floor."""
+    rtol = rtol if rtol is not None else (1e-10 if c.dtype == jnp.float64 else 1e-4)
+    return rtol * jnp.maximum(jnp.max(jnp.abs(c)), 1e-30)
 
 
 def _damped(x_star, solver: DampedNewton):
@@ -232,14 +293,9 @@ def _damped(x_star, solver: DampedNewton):
 
 
 def _projected_newton(B, c, unconstrained, solver: ProjectedNewton):
-    rtol = solver.rtol if solver.rtol is not None else (1e-10 if c.dtype == jnp.float64 else 1e-4)
-    tol = rtol * jnp.maximum(jnp.max(jnp.abs(c)), 1e-30)
-    f = lambda x: x @ (B @ x) - 2 * c @ x
+    tol = _tolerance(solver.rtol, c)
 
-    def restricted_minimizer(free):
-        # Minimize over the face {x_i = 0 for i not free}: identity rows/columns for fixed entries.
-        Bf = jnp.where(free[:, None] & free[None, :], B, 0.0) + jnp.diag(jnp.where(free, 0.0, 1.0))
-        return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(Bf), jnp.where(free, c, 0.0))
+    restricted_minimizer = lambda free: _restricted_minimizer(B, c, free)
 
     def residual(x):
         return jnp.max(jnp.abs(jnp.minimum(x, B @ x - c)))
@@ -253,24 +309,26 @@ def _projected_newton(B, c, unconstrained, solver: ProjectedNewton):
         grad = B @ x - c
         free = (x > 0) | (grad < 0)
         z = restricted_minimizer(free)
-        fx = f(x)
+        # f(x + d) - f(x) = d^T (B d + 2 grad): the change itself, not a difference of two large
+        # values of f, which float32 cannot resolve near the optimum (the search then stalls).
+        change = lambda xt: (xt - x) @ (B @ (xt - x) + 2 * grad)
 
         # Projected backtracking: the largest t in {1, 1/2, ...} with f(P(x + t (z - x))) < f(x).
         def ls_cond(s):
-            t, xt, ft, i = s
-            return (ft >= fx) & (i < 40)
+            t, xt, dt, i = s
+            return (dt >= 0) & (i < 40)
 
         def ls_body(s):
             t, _, _, i = s
             t = t * 0.5
             xt = jnp.maximum(x + t * (z - x), 0.0)
-            return t, xt, f(xt), i + 1
+            return t, xt, change(xt), i + 1
 
         x1 = jnp.maximum(z, 0.0)
-        _, xt, ft, _ = jax.lax.while_loop(ls_cond, ls_body, (1.0, x1, f(x1), 0))
+        _, xt, dt, _ = jax.lax.while_loop(ls_cond, ls_body, (1.0, x1, change(x1), 0))
         # In degenerate cases the Newton path may not descend; a projected gradient step of
         # length 1/L (L >= the largest eigenvalue of B) always does unless x is optimal.
-        x_new = jnp.where(ft < fx, xt, jnp.maximum(x - grad / lipschitz, 0.0))
+        x_new = jnp.where(dt < 0, xt, jnp.maximum(x - grad / lipschitz, 0.0))
         return x_new, k + 1, residual(x_new) <= tol
 
     lipschitz = jnp.max(jnp.sum(jnp.abs(B), axis=1))  # Gershgorin bound on the largest eigenvalue
@@ -278,6 +336,46 @@ def _projected_newton(B, c, unconstrained, solver: ProjectedNewton):
     x, steps, _ = jax.lax.while_loop(cond, body, (x0, jnp.array(0), residual(x0) <= tol))
     result = jnp.where(residual(x) <= tol, SUCCESS, MAX_STEPS)
     return x, steps, result
+
+
+@jax.custom_batching.custom_vmap
+def _restricted_minimizer(B, c, free):
+    """Minimize over the face `{x_i = 0 for i not free}`, factorizing only the free block."""
+    capacities = _capacities(B.shape[0])
+    size = jnp.searchsorted(jnp.asarray(capacities), jnp.sum(free))
+    return jax.lax.switch(size, [partial(_face_minimizer, capacity=k) for k in capacities], B, c, free)
+
+
+@_restricted_minimizer.def_vmap
+def _restricted_minimizer_vmap(axis_size, in_batched, B, c, free):
+    # Under vmap each image would need its own block size, and a batched lax.switch runs every
+    # branch: take the full-size masked solve once instead (`solve_many` avoids vmap altogether).
+    solve = partial(_face_minimizer, capacity=B.shape[-1])
+    return jax.vmap(solve, in_axes=[0 if b else None for b in in_batched])(B, c, free), True
+
+
+def _capacities(n):
+    """Static sizes of the free block that `_projected_newton` factorizes: about 1.5x apart, up to `n`."""
+    return [k for k in (64, 128, 256, 384, 512, 768, 1024, 1536, 2048, 3072, 4096) if k < n] + [n]
+
+
+def _face_minimizer(B, c, free, capacity):
+    """`argmin x^T B x - 2 c^T x` with `x_i = 0` off the free set, which has at most `capacity` entries.
+
+    The free entries are gathered into a `capacity`-sized block (padded with identity rows), so a
+    step costs `capacity^3 / 3` flops rather than `N^3 / 3`: 1 ms instead of 90 ms for 384 free
+    entries of 2048 on 2 cores.
+    """
+    n = B.shape[0]
+    if capacity == n:  # identity rows and columns for the fixed entries
+        Bf = jnp.where(free[:, None] & free[None, :], B, 0.0) + jnp.diag(jnp.where(free, 0.0, 1.0))
+        return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(Bf), jnp.where(free, c, 0.0))
+    sel = jnp.nonzero(free, size=capacity, fill_value=0)[0]
+    valid = jnp.arange(capacity) < jnp.sum(free)
+    Bs = jnp.where(valid[:, None] & valid[None, :], B[sel[:, None], sel[None, :]], 0.0)
+    Bs = Bs + jnp.diag(jnp.where(valid, 0.0, 1.0)).astype(B.dtype)
+    zs = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(Bs), jnp.where(valid, c[sel], 0.0))
+    return jnp.zeros_like(c).at[sel].add(jnp.where(valid, zs, 0.0))
 
 
 def _check_weights(smooth, ridge):

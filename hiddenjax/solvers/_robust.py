@@ -35,7 +35,14 @@ from jaxtyping import Array, Float, Int
 from tqdm.auto import tqdm
 
 from ..transport import TransportMatrix
-from ._illumination import DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, _check_image, solve_illumination
+from ._illumination import (
+    DEFAULT_RIDGE,
+    DEFAULT_SMOOTH,
+    IlluminationOperator,
+    _check_image,
+    gram_matrix,
+    solve_illumination,
+)
 from ._scene_model import SceneModel
 from ._scene_params import SceneParams, SceneUncertainty
 
@@ -79,7 +86,7 @@ def model_average(source, thetas: SceneParams, weights=None, smooth=DEFAULT_SMOO
             elif Ti.A.shape != T.A.shape or not np.array_equal(np.asarray(Ti.pixels), np.asarray(T.pixels)):
                 raise ValueError("every sample's transport matrix must have the same rows: build them all with "
                                  "mask=model.mask (the rows of the unperturbed scene)")
-            gram = gram + p[i] * (Ti.A.T @ Ti.A)
+            gram = gram + p[i] * gram_matrix(Ti.A)
             mean = mean + p[i] * Ti.A
     T_mean = eqx.tree_at(lambda t: t.A, T, mean)
     return IlluminationOperator.from_gram(T_mean, gram, smooth, ridge, absolute)
@@ -110,7 +117,7 @@ def taylor_operator(model: SceneModel, theta: SceneParams, uncertainty: SceneUnc
     T = model.transport(theta) if transport is None else transport
     if T.A.shape[0] != model.soft.pixels.shape[0]:
         raise ValueError("transport must have the model's rows: build it with mask=model.mask")
-    return IlluminationOperator.from_gram(T, T.A.T @ T.A + jacobian_gram(model, theta, uncertainty),
+    return IlluminationOperator.from_gram(T, gram_matrix(T.A) + jacobian_gram(model, theta, uncertainty),
                                           smooth, ridge, absolute)
 
 
