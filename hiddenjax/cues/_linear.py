@@ -141,7 +141,8 @@ class LinearCues(eqx.Module):
     def _estimate_rows(self, y):
         """`B^-1 A^T y` as `(N[, C])` from the observed pixels `y (P[, C])`."""
         Linv = self.inverse_factor
-        return jnp.einsum("mn,m...->n...", Linv, jnp.einsum("mn,n...->m...", Linv, jnp.einsum("pn,p...->n...", self.T.A, y)))
+        c = jnp.einsum("pn,p...->n...", self.T.A, y)  # A^T y without a transposed copy of A
+        return jnp.einsum("mn,m...->n...", Linv, jnp.einsum("mn,n...->m...", Linv, c))
 
     def cooks_distance(self, image, chunk: int = _CHUNK) -> Float[Array, " P"]:
         """Cook's distance (eq. 6.1) of every observed pixel for the ridge estimate of `image (H, W)`.

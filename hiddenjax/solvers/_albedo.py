@@ -28,6 +28,7 @@ from ._illumination import (
     _check_image,
     _check_weights,
     _solve,
+    gram_matrix,
     prior_matrix,
     views,
 )
@@ -122,7 +123,7 @@ def solve_albedo_illumination(
 
     def x_star(rhos):
         Ars = [a * r[:, None] for a, r in zip(A1s, rhos)]
-        B = sum(a.T @ a for a in Ars) + R  # eq. 5.5, summed over views
+        B = sum(gram_matrix(a) for a in Ars) + R  # eq. 5.5, summed over views
         factor = jnp.linalg.cholesky(B)
         C = sum(y @ a for y, a in zip(Ys, Ars))  # (L, N)
         X = _solve(B, factor, C.T, ProjectedNewton(), True)[0].T

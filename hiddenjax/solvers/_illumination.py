@@ -34,8 +34,9 @@ class ProjectedNewton(eqx.Module):
     Each step solves the normal equations restricted to the free set `{x > 0 or grad < 0}` (a
     Cholesky factorization of the free block of `B` only, gathered into the next of a few fixed
     sizes) and takes the longest step along the projected path that decreases the objective
-    (backtracking on the exact change of the objective, which float32 resolves near the optimum). It stops when the KKT residual
-    `max |min(x, B x - c)|` falls below `rtol * max |c|`: then `x` is optimal to that tolerance.
+    (backtracking on the exact change of the objective, which float32 resolves near the optimum).
+    It stops when the KKT residual `max |min(x, B x - c)|` falls below `rtol * max |c|`: then `x`
+    is optimal to that tolerance.
     `rtol=None` picks the round-off floor of the dtype: 1e-4 in float32 (a 2048-term product
     already carries ~1e-5 relative error), 1e-10 in float64.
     """
@@ -295,8 +296,6 @@ def _damped(x_star, solver: DampedNewton):
 def _projected_newton(B, c, unconstrained, solver: ProjectedNewton):
     tol = _tolerance(solver.rtol, c)
 
-    restricted_minimizer = lambda free: _restricted_minimizer(B, c, free)
-
     def residual(x):
         return jnp.max(jnp.abs(jnp.minimum(x, B @ x - c)))
 
@@ -308,7 +307,7 @@ def _projected_newton(B, c, unconstrained, solver: ProjectedNewton):
         x, k, _ = state
         grad = B @ x - c
         free = (x > 0) | (grad < 0)
-        z = restricted_minimizer(free)
+        z = _restricted_minimizer(B, c, free)
         # f(x + d) - f(x) = d^T (B d + 2 grad): the change itself, not a difference of two large
         # values of f, which float32 cannot resolve near the optimum (the search then stalls).
         change = lambda xt: (xt - x) @ (B @ (xt - x) + 2 * grad)
