@@ -125,9 +125,9 @@ def solve_albedo_illumination(
         Ars = [a * r[:, None] for a, r in zip(A1s, rhos)]
         B = sum(gram_matrix(a) for a in Ars) + R  # eq. 5.5, summed over views
         factor = jnp.linalg.cholesky(B)
+        factor = eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)), NOT_POSITIVE_DEFINITE)
         C = sum(y @ a for y, a in zip(Ys, Ars))  # (L, N)
-        X = _solve(B, factor, C.T, ProjectedNewton(), True)[0].T
-        return eqx.error_if(X, ~jnp.all(jnp.isfinite(X)), NOT_POSITIVE_DEFINITE)
+        return _solve(B, factor, C.T, ProjectedNewton(), True)[0].T
 
     def rho_star(v, X, rho0):
         AX = A1s[v] @ X.T  # (P, L)
