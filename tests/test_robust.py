@@ -179,3 +179,52 @@ def test_gauss_newton_step_equals_finite_difference_step_and_vmaps(problem):
     assert relrmse(batched[1], step(model, theta, envs[1], images[1], unc, noise=noise).step) < 1e-4
     with pytest.raises(ValueError, match="does not match the model's image"):
         hj.solvers.gauss_newton_step(model, theta, envs[0], images[0][:8], unc)
+
+
+def _joint_step(A, R, x, J, r, u, s2):
+    """Dense Gauss-Newton step in `(u, x_F)` (float64): the map's free entries move with the pose."""
+    n, C = J.shape[1], x.shape[1]
+    Jc = J.reshape(A.shape[0], C, n)
+    blocks = [np.nonzero(x[:, c] > 0)[0] for c in range(C)]
+    size = n + sum(len(b) for b in blocks)
+    M, g = np.zeros((size, size)), np.zeros(size)
+    M[:n, :n], g[:n] = J.T @ J + s2 * np.eye(n), J.T @ r - s2 * u
+    k = n
+    for c, F in enumerate(blocks):
+        AF = A[:, F]
+        sl = slice(k, k + len(F))
+        M[:n, sl] = Jc[:, c].T @ AF
+        M[sl, :n] = M[:n, sl].T
+        M[sl, sl] = AF.T @ AF + R[np.ix_(F, F)]
+        g[sl] = AF.T @ r.reshape(-1, C)[:, c] - (R @ x[:, c])[F]
+        k += len(F)
+    return np.linalg.solve(M, g)[:n]
+
+
+def test_refit_step_is_the_joint_gauss_newton_step(problem):
+    """With the operator, the step is the Gauss-Newton step of the joint problem in (theta, x_F)."""
+    setup, grid, model, sky, _ = problem
+    unc = SceneUncertainty.of(translation=[2 * MM, 0.0, 2 * MM], rotation=[0.0, 2 * DEG, 0.0])
+    true = SceneParams.of(translation=[1.5 * MM, 0.0, -1.0 * MM], rotation=[0.0, 1.5 * DEG, 0.0])
+    scene, camera = model.perturb(setup.scene, setup.camera, true)
+    image = jnp.asarray(hj.reference_render(scene, camera, sky, samples=64, pixel_samples=2, seed=1))  # RGB
+    theta = SceneParams.of(translation=[0.3 * MM, 0.0, 0.2 * MM])
+    op = hj.solvers.IlluminationOperator.build(model.transport(theta))
+    env = op.solve(image).env
+    step = eqx.filter_jit(hj.solvers.gauss_newton_step)
+    fixed = step(model, theta, env, image, unc, noise=0.01)
+    refit = step(model, theta, env, image, unc, noise=0.01, operator=op)
+    A = np.asarray(op.views[0].A, np.float64)
+    R = np.asarray(op.B, np.float64) - A.T @ A
+    x = np.asarray(env, np.float64).reshape(grid.size, -1)
+    r = (np.asarray(model.image_to_rows(image), np.float64) - A @ x).reshape(-1)
+    u = np.asarray(unc.whiten(theta, SceneParams.zeros()), np.float64)
+    dense = _joint_step(A, R, x, np.asarray(refit.jacobian, np.float64), r, u, 1e-4)
+    assert relrmse(refit.step, dense) < 1e-3, (np.asarray(refit.step), dense)
+    assert relrmse(fixed.step, dense) > 0.1  # holding the map fixed is a different step
+    envs, images = jnp.stack([env, env * 1.1]), jnp.stack([image, image * 1.1])
+    batched = jax.vmap(lambda e, im: step(model, theta, e, im, unc, noise=0.01, operator=op).step)(envs, images)
+    assert relrmse(batched[0], refit.step) < 1e-4
+    with pytest.raises(ValueError, match="model's rows"):
+        hj.solvers.gauss_newton_step(model, theta, env, image, unc, operator=hj.solvers.IlluminationOperator.build(
+            hj.transport_matrix(setup.scene, setup.camera, grid, samples=4, progress=False)))

@@ -135,29 +135,57 @@ class GaussNewtonStep(eqx.Module):
 
 
 def gauss_newton_step(model: SceneModel, theta: SceneParams, env, image, uncertainty: SceneUncertainty, *,
-                      mean: SceneParams | None = None, noise=None, learning_rate=1.0,
-                      rendered=None) -> GaussNewtonStep:
-    """The Gauss-Newton update of the scene parameters for a fixed environment map (eq. A.10).
+                      mean: SceneParams | None = None, noise=None, learning_rate=1.0, rendered=None,
+                      operator: IlluminationOperator | None = None) -> GaussNewtonStep:
+    """The Gauss-Newton update of the scene parameters (eq. A.10).
 
     **Arguments:** `env (h, w[, C])` the current map; `image (H, W[, C])`; `mean` the believed
     parameters (default zeros); `noise` the pixel noise `s` (default: the RMS residual);
     `rendered (P[, C])` the current `A x` if it comes from another matrix than the soft model's
     (e.g. the Embree one used for the illumination solve), so the residual matches that solve.
+    `operator`: the `IlluminationOperator` whose solve gave `env` (then `rendered` defaults to its
+    `A x`). Without it the map is held fixed (eq. A.10 as printed). With it the step lets the map
+    re-fit on its free set `F = {x > 0}` (variable projection, Golub-Pereyra; Kaufman's form):
+    `J^T J` becomes `J^T (I - A_F B_FF^-1 A_F^T) J`, the part of the parameters' effect that no
+    change of the map explains. That is the exact Gauss-Newton step of the joint problem in
+    `(theta, x_F)` at a solved `x` (test); held fixed, the map has already absorbed most of a pose
+    error and the steps are too short or wrong.
     Pure JAX: jit it (with `eqx.filter_jit`) and vmap it over a batch of images and maps.
     """
     mean = SceneParams.zeros() if mean is None else mean
     x = jnp.asarray(env).reshape((model.grid.size,) + jnp.shape(env)[2:])
     y = _check_image(model, image)
     Ax, J = model.jacobian(theta, x, uncertainty)
+    if operator is not None:
+        if len(operator.views) != 1 or operator.views[0].A.shape != (y.shape[0], model.grid.size):
+            raise ValueError("operator must be the one-view IlluminationOperator of a matrix on the model's rows "
+                             "(build it with mask=model.mask)")
+        A = operator.views[0].A
+        rendered = jnp.einsum("pn,n...->p...", A, x) if rendered is None else rendered
     r = (y - (Ax if rendered is None else rendered)).reshape(-1)
     J = J.reshape(-1, len(uncertainty.free))
     u = uncertainty.whiten(theta, mean)
     s2 = jnp.mean(r * r) if noise is None else jnp.asarray(noise) ** 2
     M = J.T @ J + s2 * jnp.eye(J.shape[1], dtype=J.dtype)
+    if operator is not None:
+        M = M - _refit(operator.B, A, x, J)
     operator = lx.MatrixLinearOperator(M, lx.positive_semidefinite_tag)
     du = lx.linear_solve(operator, J.T @ r - s2 * u, lx.Cholesky()).value
     new = SceneParams.from_flat(theta.flat() + learning_rate * du @ uncertainty.basis().astype(du.dtype))
     return GaussNewtonStep(new, du, r @ r, u @ u, jnp.sqrt(s2), J)
+
+
+def _refit(B, A, x, J):
+    """`sum_c K_c^T B_FF^-1 K_c` with `K_c = A_F^T J_c`: what re-fitting the map on `F = {x_c > 0}` explains."""
+    xs = x.reshape(x.shape[0], -1)  # (N, C)
+    Js = J.reshape(A.shape[0], xs.shape[1], -1)  # rows of J are (pixel, channel)
+
+    def channel(free, Jc):
+        K = jnp.where(free[:, None], jnp.einsum("pn,pk->nk", A, Jc), 0.0)
+        Bf = jnp.where(free[:, None] & free[None, :], B, 0.0) + jnp.diag(jnp.where(free, 0.0, 1.0)).astype(B.dtype)
+        return K.T @ jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(Bf, lower=True), K)
+
+    return jnp.sum(jax.vmap(channel, in_axes=(1, 1))(xs > 0, Js), axis=0)
 
 
 class SceneSolution(eqx.Module):
@@ -182,7 +210,8 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
                              theta: SceneParams | None = None, *, steps: int = 10, learning_rate=0.5,
                              transport: Callable[[SceneParams], TransportMatrix] | None = None,
                              mean: SceneParams | None = None, noise=None, smooth=DEFAULT_SMOOTH,
-                             ridge=DEFAULT_RIDGE, tol: float = 0.02, progress: bool = True) -> SceneSolution:
+                             ridge=DEFAULT_RIDGE, tol: float = 0.02, refit: bool = True,
+                             progress: bool = True) -> SceneSolution:
     """Alternate the exact illumination solve (eq. 5.3) and Gauss-Newton steps on `theta` (eq. A.10).
 
     **Arguments:** `theta` the starting parameters (default `mean`, itself default zeros);
@@ -190,8 +219,10 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     an Embree build of `model.perturb(...)` with `mask=model.mask` is more accurate), the
     derivatives always come from the soft model; `learning_rate` scales each step (the thesis
     suggests `<< 1`); stops after `steps` or once the whitened step is shorter than `tol`
-    standard deviations. Each step costs one `transport` and one linearization with `n` forward
-    derivatives (the free parameters). Pose recovery is not yet demonstrated (README).
+    standard deviations. `refit=True` (default) takes the variable-projection step, which lets
+    the map re-fit (`gauss_newton_step(..., operator=...)`); `False` holds it fixed as eq. A.10
+    does. Each step costs one `transport` and one linearization with `n` forward derivatives (the
+    free parameters). Pose recovery to the issue's target is not yet demonstrated (README).
     """
     mean = SceneParams.zeros() if mean is None else mean
     theta = mean if theta is None else theta
@@ -200,11 +231,12 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     thetas, objectives, residuals, lengths = [], [], [], []
     bar = tqdm(range(steps), desc="Gauss-Newton", disable=not progress)
     for _ in bar:
-        T = build(theta)
-        solution = solve_illumination(T, image, smooth, ridge)
-        x = solution.env.reshape((T.grid.size,) + solution.env.shape[2:])
+        op = IlluminationOperator.build(build(theta), smooth, ridge)
+        solution = op.solve(image)
+        x = solution.env.reshape((op.B.shape[0],) + solution.env.shape[2:])
         out = step_fn(model, theta, solution.env, image, uncertainty, mean=mean, noise=noise,
-                      learning_rate=learning_rate, rendered=jnp.einsum("pn,n...->p...", T.A, x))
+                      learning_rate=learning_rate, rendered=jnp.einsum("pn,n...->p...", op.views[0].A, x),
+                      operator=op if refit else None)
         thetas.append(theta)
         objectives.append(jnp.sum(solution.objective))
         residuals.append(out.residual)
