@@ -15,7 +15,9 @@
   whitened coordinates `u = (theta - mean)/sigma`, with `J = T_x diag(sigma)`:
   `(J^T J + s^2 I) du = J^T (y - A x) - s^2 u`, scaled by a learning rate. Uncertain parameters
   move freely, well-known ones stay near the mean; `s` is the pixel noise (by default the current
-  root-mean-square residual).
+  root-mean-square residual). Held fixed, the map has already absorbed most of a pose error;
+  with the solve's operator the step lets it re-fit on its free set (variable projection:
+  `J^T J -> J^T (I - A_F B_FF^-1 A_F^T) J`, the Gauss-Newton step of the joint problem).
 
 The step is a small `n x n` solve (lineax Cholesky). Optimistix's `GaussNewton` would re-evaluate
 the residual (a full soft render) and its Jacobian for its own acceptance test before returning a
@@ -169,8 +171,8 @@ def gauss_newton_step(model: SceneModel, theta: SceneParams, env, image, uncerta
     M = J.T @ J + s2 * jnp.eye(J.shape[1], dtype=J.dtype)
     if operator is not None:
         M = M - _refit(operator.B, A, x, J)
-    operator = lx.MatrixLinearOperator(M, lx.positive_semidefinite_tag)
-    du = lx.linear_solve(operator, J.T @ r - s2 * u, lx.Cholesky()).value
+    normal = lx.MatrixLinearOperator(M, lx.positive_semidefinite_tag)
+    du = lx.linear_solve(normal, J.T @ r - s2 * u, lx.Cholesky()).value
     new = SceneParams.from_flat(theta.flat() + learning_rate * du @ uncertainty.basis().astype(du.dtype))
     return GaussNewtonStep(new, du, r @ r, u @ u, jnp.sqrt(s2), J)
 
