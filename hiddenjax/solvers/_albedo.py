@@ -23,9 +23,9 @@ from ..transport import TransportMatrix
 from ._illumination import (
     DEFAULT_RIDGE,
     DEFAULT_SMOOTH,
-    NOT_POSITIVE_DEFINITE,
     ProjectedNewton,
     _check_image,
+    _cholesky,
     _check_weights,
     _solve,
     gram_matrix,
@@ -124,10 +124,8 @@ def solve_albedo_illumination(
     def x_star(rhos):
         Ars = [a * r[:, None] for a, r in zip(A1s, rhos)]
         B = sum(gram_matrix(a) for a in Ars) + R  # eq. 5.5, summed over views
-        factor = jnp.linalg.cholesky(B)
-        factor = eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)), NOT_POSITIVE_DEFINITE)
         C = sum(y @ a for y, a in zip(Ys, Ars))  # (L, N)
-        return _solve(B, factor, C.T, ProjectedNewton(), True)[0].T
+        return _solve(B, _cholesky(B), C.T, ProjectedNewton(), True)[0].T
 
     def rho_star(v, X, rho0):
         AX = A1s[v] @ X.T  # (P, L)

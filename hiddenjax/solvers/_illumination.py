@@ -164,9 +164,7 @@ class IlluminationOperator(eqx.Module):
         _check_weights(smooth, ridge)
         ls, lr = regularization_weights(Ts, smooth, ridge, absolute)
         B = gram + prior_matrix(Ts[0].grid, ls, lr, Ts[0].A.dtype)
-        factor = jnp.linalg.cholesky(B)
-        factor = eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)), NOT_POSITIVE_DEFINITE)
-        return cls(Ts, B, factor, jnp.asarray(ls), jnp.asarray(lr))
+        return cls(Ts, B, _cholesky(B), jnp.asarray(ls), jnp.asarray(lr))
 
     def inverse(self) -> Float[Array, "N P"]:
         """`G = (A^T A + R)^-1 A^T` (eq. 5.9 with the smoothness prior); `G @ y` is the signed estimate.
@@ -300,8 +298,14 @@ def _solve(B, factor, c, solver, nonneg):
     return _columns(out)
 
 
+def _cholesky(B):
+    """The lower Cholesky factor of `B`, or the clear not-positive-definite error (never NaN maps)."""
+    factor = jnp.linalg.cholesky(B)
+    return eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)), NOT_POSITIVE_DEFINITE)
+
+
 def _columns(mapped):
-    """Outputs of a `lax.map` over columns, with the column axis moved last."""
+    """Outputs of a `lax.map` or `lax.scan` over columns, with the column axis moved last."""
     return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 0, -1), mapped)
 
 
