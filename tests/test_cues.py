@@ -42,7 +42,7 @@ def test_leverage_is_the_hat_diagonal(scene_T, smooth, method):
     with jax.enable_x64():
         # several QR updates and leverage blocks, the last ones shifted back over rows already taken
         assert scene_T.A.shape[0] % 100 != 0
-        cues = hj.cues.LinearCues.build(scene_T, ridge=1e-3, smooth=smooth, method=method, qr_chunk=100)
+        cues = hj.cues.LinearCues.build(scene_T, ridge=1e-3, smooth=smooth, method=method, chunk=100, qr_chunk=100)
         h = np.asarray(cues.leverage(chunk=100))
         A, B, _ = _dense(scene_T, cues)
         H = A @ np.linalg.solve(B, A.T)
@@ -51,6 +51,26 @@ def test_leverage_is_the_hat_diagonal(scene_T, smooth, method):
         np.testing.assert_allclose(h.sum(), np.trace(H), rtol=1e-9)
         np.testing.assert_allclose(float(cues.effective_dof()), np.trace(H), rtol=1e-9)
         np.testing.assert_allclose(hj.cues.leverage(scene_T, ridge=1e-3, smooth=smooth), h, rtol=1e-12)
+
+
+@pytest.mark.parametrize("method", ["qr", "cholesky"])
+def test_float32_cues_survive_an_ill_conditioned_normal_matrix(method):
+    # overlapping smooth lobes (a blurry object-camera): cond(B) = 3.6e7 at a relative ridge of 1e-6,
+    # where float32 A^T A + R has no Cholesky factor at all
+    P, grid = 600, hj.EnvGrid(8, 16)
+    t, n = np.linspace(0, 1, P)[:, None], np.linspace(0, 1, grid.size)[None]
+    A = np.exp(-((t - n) ** 2) / (2 * 0.08**2)).astype(np.float32)
+    T = hj.TransportMatrix(jnp.asarray(A), jnp.ones(P, jnp.float32), jnp.arange(P), grid, (30, 20))
+    A64 = A.astype(np.float64)
+    lr = 1e-6 * np.mean(np.sum(A64**2, axis=0))
+    B = A64.T @ A64 + lr * np.eye(grid.size)
+    assert np.linalg.cond(B) > 1e7
+    naive = jnp.linalg.cholesky(jnp.asarray(A).T @ jnp.asarray(A) + jnp.float32(lr) * jnp.eye(grid.size))
+    assert not bool(jnp.all(jnp.isfinite(naive)))
+    Binv = np.linalg.inv(B)
+    cues = hj.cues.LinearCues.build(T, ridge=1e-6, method=method, chunk=256, qr_chunk=256)
+    np.testing.assert_allclose(cues.leverage(chunk=256), np.einsum("pn,nm,pm->p", A64, Binv, A64), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(cues.uncertainty()).ravel(), np.sqrt(np.diag(Binv)), rtol=1e-4)
 
 
 def test_leverage_under_jit_matches_eager(scene_T):
@@ -189,3 +209,19 @@ def test_bad_input_raises_clear_errors(scene_T):
             hj.cues.leverage([scene_T, scene_T])
         with pytest.raises(ValueError, match="scalar"):
             hj.cues.saliency(lambda y: y.sum(0), np.ones((3, 3)))
+
+
+def test_cue_maps_compile_to_less_than_twice_the_memory_of_A():
+    # the benchmark's size (16384 pixels x 2048 directions, float32), compiled only: XLA's own
+    # account of the temporary memory of leverage + uncertainty, the target being < 2x A
+    P, grid = 16384, hj.EnvGrid(32, 64)
+
+    def cue_maps(A):
+        cues = hj.cues.LinearCues.build(hj.TransportMatrix(A, jnp.ones(P), jnp.arange(P), grid, (128, 128)))
+        return cues.leverage(), cues.uncertainty()
+
+    A = jax.ShapeDtypeStruct((P, grid.size), jnp.float32)
+    memory = jax.jit(cue_maps).lower(A).compile().memory_analysis()
+    if memory is None:
+        pytest.skip("this backend reports no memory analysis")
+    assert memory.temp_size_in_bytes < 2 * P * grid.size * 4, memory.temp_size_in_bytes / (P * grid.size * 4)

@@ -97,23 +97,46 @@ def regularization_weights(T, smooth, ridge, absolute: bool = False):
     return smooth * scale, ridge * scale
 
 
-def gram_matrix(A: Float[Array, "P N"], block: int = 256) -> Float[Array, "N N"]:
-    """`A^T A`, by column blocks: the blocks on and above the diagonal, skipping all-zero column blocks.
+def gram_matrix(A: Float[Array, "P N"], block: int = 256, chunk: int = 2048) -> Float[Array, "N N"]:
+    """`A^T A` from the column blocks on and above the diagonal, skipping all-zero column blocks.
 
     A transport matrix of an object on a plane has zero columns wherever the plane hides the sky
-    (the lower hemisphere): on the teapot fixture this is 3.3x faster than `A.T @ A`.
+    (the lower hemisphere): on the teapot fixture this is 3x faster than `A.T @ A`. The rows are
+    taken `chunk` at a time (`fold_rows`), so the memory beside `A` is the `N x N` result and
+    one `chunk x N` block.
     """
+    edges, lit = column_blocks(A, block)
+    pairs = [(i, j) for i in range(len(lit)) for j in range(i, len(lit))]
+
+    def add(G, start, rows):
+        cols = [rows[:, a:b] for a, b in zip(edges[:-1], edges[1:])]
+        return tuple(g + jax.lax.cond(lit[i] & lit[j], lambda a, b: a.T @ b, lambda a, b: jnp.zeros_like(g), cols[i],
+                                      cols[j]) for g, (i, j) in zip(G, pairs))
+
+    sizes = np.diff(edges)
+    G = fold_rows(A, add, tuple(jnp.zeros((sizes[i], sizes[j]), A.dtype) for i, j in pairs), chunk)
+    upper = dict(zip(pairs, G))
+    return jnp.block([[upper[(i, j)] if i <= j else upper[(j, i)].T for j in range(len(lit))] for i in range(len(lit))])
+
+
+def column_blocks(A, block: int = 256):
+    """Edges of `A`'s column blocks of `block` columns (the last one ragged) and whether each is not all zero."""
     edges = list(range(0, A.shape[1], block)) + [A.shape[1]]
-    cols = [A[:, a:b] for a, b in zip(edges[:-1], edges[1:])]
-    lit = [jnp.any(c != 0) for c in cols]
-    G = [[None] * len(cols) for _ in cols]
-    for i, ci in enumerate(cols):
-        for j in range(i, len(cols)):
-            cj = cols[j]
-            G[i][j] = jax.lax.cond(lit[i] & lit[j], lambda a, b: a.T @ b,
-                                   lambda a, b: jnp.zeros((a.shape[1], b.shape[1]), A.dtype), ci, cj)
-            G[j][i] = G[i][j].T
-    return jnp.block(G)
+    lit = jnp.max(jnp.abs(A), axis=0) > 0  # one pass over A (A's column slices, or A != 0, were copies)
+    return edges, [jnp.any(lit[a:b]) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def fold_rows(A, fn, init, chunk: int = 2048):
+    """`fn(acc, start, A[start:start + chunk])` folded over the row blocks of `A` in order.
+
+    The full blocks run in one `lax.fori_loop` (one compiled body), then the last, shorter block, if
+    any. Memory beside `A`: `acc`, one block, and (XLA's loop state) a copy of `A`.
+    """
+    P = A.shape[0]
+    c = min(chunk, P)
+    full = P // c
+    acc = jax.lax.fori_loop(0, full, lambda k, acc: fn(acc, k * c, jax.lax.dynamic_slice_in_dim(A, k * c, c)), init)
+    return fn(acc, full * c, A[full * c :]) if full * c < P else acc
 
 
 def prior_matrix(grid, smooth, ridge, dtype=jnp.float32) -> Float[Array, "N N"]:
