@@ -80,7 +80,7 @@ def main(argv=None):
     rows.append(("exact solve, B already factorized", f"{t_single * 1e3:.0f} ms", "", ""))
     many = jax.jit(lambda op, Y: op.solve_many(Y, throw=False))
     many(op, batch)  # compile
-    out, t_batch = timed(many, op, batch, repeat=5)
+    out, t_batch = timed(many, op, batch, repeat=10)
     results["batched"] = dict(exact_images_per_second=64 / t_batch, steps_max=int(out.steps.max()),
                               kkt_max=float(out.kkt_residual.max()), failures=int(np.sum(out.result != 0)))
     rows.append(("exact solves, 64 frames of one scene (op.solve_many)", f"{t_batch:.2f} s",
@@ -94,7 +94,7 @@ def main(argv=None):
                       for k, s in enumerate(skies)])
     mixed = jnp.asarray(np.einsum("mk,khw->mhw", rng.dirichlet(np.full(len(skies), 0.3), 64), basis), jnp.float32)
     many(op, mixed)  # compile
-    out, t_mixed = timed(many, op, mixed, repeat=5)
+    out, t_mixed = timed(many, op, mixed, repeat=10)
     results["batched"]["mixed_images_per_second"] = 64 / t_mixed
     results["batched"]["mixed_steps_mean"] = float(out.steps.mean())
     rows.append(("exact solves, 64 different lightings (op.solve_many)", f"{t_mixed:.2f} s",

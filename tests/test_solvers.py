@@ -219,8 +219,8 @@ def test_columns_start_on_the_previous_columns_face(x64):
         single = jax.vmap(op.solve)(jnp.asarray(stack))
         np.testing.assert_allclose(many.env, single.env, rtol=1e-9, atol=1e-12)
         assert np.all(many.kkt_residual < 1e-10) and np.all(many.result == 0)
-        if related:  # the first column starts cold, the others on the face before them (+1 factorization)
-            assert int(many.steps.sum()) + len(stack) - 1 < int(single.steps.sum()), (many.steps, single.steps)
+        if related:  # the first column starts cold, the others on the face before them (steps count that one)
+            assert int(many.steps.sum()) < int(single.steps.sum()), (many.steps, single.steps)
 
 
 def test_gram_matrix_skips_zero_blocks_exactly():

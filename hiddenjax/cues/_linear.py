@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, gram_matrix, prior_matrix, regularization_weights
-from ..solvers._illumination import _check_image, _check_weights, fold_rows
+from ..solvers._illumination import _check_image, _check_weights, fold_rows, transpose_times
 from ..transport import TransportMatrix
 
 _CHUNK = 2048  # pixels per block of `A L^-T`: 2048 x N floats (16 MiB at N = 2048)
@@ -130,7 +130,7 @@ class LinearCues(eqx.Module):
     def _estimate_rows(self, y):
         """`B^-1 A^T y` as `(N[, C])` from the observed pixels `y (P[, C])`."""
         Linv = self.inverse_factor
-        c = jnp.einsum("pn,p...->n...", self.T.A, y)  # A^T y without a transposed copy of A
+        c = transpose_times(self.T.A, y)
         return jnp.einsum("mn,m...->n...", Linv, jnp.einsum("mn,n...->m...", Linv, c))
 
     def cooks_distance(self, image, chunk: int = _CHUNK) -> Float[Array, " P"]:

@@ -21,6 +21,7 @@ from ._illumination import (
     normal_matrix,
     prior_matrix,
     regularization_weights,
+    transpose_times,
 )
 
 
@@ -98,5 +99,5 @@ def solve_illumination_adam(
 
     x, history = one(y) if y.ndim == 1 else jax.vmap(one, in_axes=1, out_axes=-1)(y)
     B = normal_matrix(T, *regularization_weights(T, smooth, ridge, absolute))
-    kkt = _kkt_residual(B, jnp.einsum("pn,p...->n...", T.A, y), x, True)
+    kkt = _kkt_residual(B, transpose_times(T.A, y), x, True)
     return AdamSolution(x.reshape(T.grid.shape + x.shape[1:]), history, kkt, jnp.array(steps))
