@@ -105,7 +105,9 @@ def gram_matrix(A: Float[Array, "P N"], block: int = 256, chunk: int = 2048) -> 
     taken `chunk` at a time (`fold_rows`), so the memory beside `A` is the `N x N` result and
     one `chunk x N` block.
     """
-    edges, lit = column_blocks(A, block)
+    edges = list(range(0, A.shape[1], block)) + [A.shape[1]]
+    nonzero = jnp.max(jnp.abs(A), axis=0) > 0  # one pass over A (A's column slices, or A != 0, were copies)
+    lit = [jnp.any(nonzero[a:b]) for a, b in zip(edges[:-1], edges[1:])]
     pairs = [(i, j) for i in range(len(lit)) for j in range(i, len(lit))]
 
     def add(G, start, rows):
@@ -117,13 +119,6 @@ def gram_matrix(A: Float[Array, "P N"], block: int = 256, chunk: int = 2048) -> 
     G = fold_rows(A, add, tuple(jnp.zeros((sizes[i], sizes[j]), A.dtype) for i, j in pairs), chunk)
     upper = dict(zip(pairs, G))
     return jnp.block([[upper[(i, j)] if i <= j else upper[(j, i)].T for j in range(len(lit))] for i in range(len(lit))])
-
-
-def column_blocks(A, block: int = 256):
-    """Edges of `A`'s column blocks of `block` columns (the last one ragged) and whether each is not all zero."""
-    edges = list(range(0, A.shape[1], block)) + [A.shape[1]]
-    lit = jnp.max(jnp.abs(A), axis=0) > 0  # one pass over A (A's column slices, or A != 0, were copies)
-    return edges, [jnp.any(lit[a:b]) for a, b in zip(edges[:-1], edges[1:])]
 
 
 def fold_rows(A, fn, init, chunk: int = 2048):
@@ -225,8 +220,8 @@ class IlluminationOperator(eqx.Module):
         `jax.vmap(op.solve)(images)`, but faster: the images become columns of one problem, so every
         unconstrained start comes from one triangular solve, each image's projected Newton steps
         factorize only its own free block (under `vmap`, the choice of block size runs every size),
-        and an image may start on the previous one's free set (frames of one scene: about half the
-        steps). `steps` counts the Newton steps (factorizations), a warm start's first one included.
+        and an image may start on the previous one's free set (frames of one scene on the teapot:
+        3.1 steps instead of 4-5). `steps` counts the Newton steps (factorizations), a warm start's first one included.
         """
         stacks = [jnp.asarray(s) for s in ((images,) if len(self.views) == 1 else tuple(images))]
         if any(s.ndim not in (3, 4) for s in stacks) or len({s.shape[0] for s in stacks}) != 1:
