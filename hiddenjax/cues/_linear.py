@@ -225,16 +225,8 @@ def _passes(dtype, ridge, absolute, target: float = 1e-5) -> int:
 
 
 def _chunked_qr(A, R, chunk):
-    """`R` factor of `[R; A]` by updates `R <- qr([R; A_k])` over row blocks of `A` (TSQR).
-
-    Full blocks in a loop (one compiled update), then the remaining rows, if any, in one more.
-    """
-    P = A.shape[0]
-    c = min(chunk, P)
-    update = lambda R, block: jnp.linalg.qr(jnp.concatenate([R, block]), mode="r")
-    full = P // c
-    R = jax.lax.fori_loop(0, full, lambda k, R: update(R, jax.lax.dynamic_slice_in_dim(A, k * c, c)), R)
-    return update(R, A[full * c :]) if full * c < P else R
+    """`R` factor of `[R; A]` by updates `R <- qr([R; A_k])` over row blocks of `A` (TSQR, `fold_rows`)."""
+    return fold_rows(A, lambda R, start, rows: jnp.linalg.qr(jnp.concatenate([R, rows]), mode="r"), R, chunk)
 
 
 def _flat_pixels(grid, pixels):

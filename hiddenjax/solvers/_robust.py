@@ -44,6 +44,7 @@ from ._illumination import (
     _check_image,
     gram_matrix,
     solve_illumination,
+    transpose_times,
 )
 from ._scene_model import SceneModel
 from ._scene_params import SceneParams, SceneUncertainty
@@ -183,8 +184,8 @@ def _refit(B, A, x, J):
     Js = J.reshape(A.shape[0], xs.shape[1], -1)  # rows of J are (pixel, channel)
 
     def channel(free, Jc):
-        K = jnp.where(free[:, None], jnp.einsum("pn,pk->nk", A, Jc), 0.0)
-        Bf = jnp.where(free[:, None] & free[None, :], B, 0.0) + jnp.diag(jnp.where(free, 0.0, 1.0)).astype(B.dtype)
+        K = jnp.where(free[:, None], transpose_times(A, Jc), 0.0)
+        Bf = jnp.where(free[:, None] & free[None, :], B, jnp.eye(B.shape[0], dtype=B.dtype))  # identity off F
         return K.T @ jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(Bf, lower=True), K)
 
     return jnp.sum(jax.vmap(channel, in_axes=(1, 1))(xs > 0, Js), axis=0)
