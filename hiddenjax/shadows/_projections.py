@@ -238,7 +238,7 @@ def reconstruct_from_projections(projections: Sequence[Projection], hidden_plane
     B, c = gram + lam * np.eye(len(gram)), An.T @ b
     with jax.enable_x64(True):
         Bj, cj = jnp.asarray(B), jnp.asarray(c)
-        z, _, _ = _solve(Bj, _cholesky(Bj), cj, ProjectedNewton(max_steps=max_steps), True)
+        z, *_ = _solve(Bj, _cholesky(Bj), cj, ProjectedNewton(max_steps=max_steps), True)
         z = np.asarray(z)
     kkt = float(np.max(np.abs(np.minimum(z, B @ z - c))) / max(np.max(np.abs(c)), 1e-30))
     x = np.where(norm > 0, z / np.where(norm > 0, norm, 1.0), 0.0)

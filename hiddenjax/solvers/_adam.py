@@ -99,5 +99,6 @@ def solve_illumination_adam(
 
     x, history = one(y) if y.ndim == 1 else jax.vmap(one, in_axes=1, out_axes=-1)(y)
     B = normal_matrix(T, *regularization_weights(T, smooth, ridge, absolute))
-    kkt = _kkt_residual(B, transpose_times(T.A, y), x, True)
+    c = transpose_times(T.A, y)
+    kkt = _kkt_residual(jnp.einsum("mn,n...->m...", B, x) - c, c, x, True)
     return AdamSolution(x.reshape(T.grid.shape + x.shape[1:]), history, kkt, jnp.array(steps))
