@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..solvers._illumination import ProjectedNewton, _cholesky, _solve
+from ..solvers._illumination import ProjectedNewton, _cholesky, _kkt_residual, _solve
 from ._edges import edge_angle, edge_plane_normal
 
 DEFAULT_BINS = 32
@@ -238,9 +238,9 @@ def reconstruct_from_projections(projections: Sequence[Projection], hidden_plane
     B, c = gram + lam * np.eye(len(gram)), An.T @ b
     with jax.enable_x64(True):
         Bj, cj = jnp.asarray(B), jnp.asarray(c)
-        z, *_ = _solve(Bj, _cholesky(Bj), cj, ProjectedNewton(max_steps=max_steps), True)
+        z, grad, *_ = _solve(Bj, _cholesky(Bj), cj, ProjectedNewton(max_steps=max_steps), True)
+        kkt = float(_kkt_residual(grad, cj, z, True))
         z = np.asarray(z)
-    kkt = float(np.max(np.abs(np.minimum(z, B @ z - c))) / max(np.max(np.abs(c)), 1e-30))
     x = np.where(norm > 0, z / np.where(norm > 0, norm, 1.0), 0.0)
     return Reconstruction(
         image=x.reshape(n0, n1),
