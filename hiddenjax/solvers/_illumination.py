@@ -31,10 +31,11 @@ SUCCESS, MAX_STEPS = 0, 1
 class ProjectedNewton(eqx.Module):
     """Exact non-negative solve: projected Newton with an active set (Bertsekas, 1982).
 
-    Each step solves the normal equations restricted to the free set `{x > 0 or grad < 0}` (a
-    Cholesky factorization of the free block of `B` only, gathered into the next of some fixed
-    sizes) and takes the longest step along the projected path that decreases the objective
-    (backtracking on the exact change of the objective, which float32 resolves near the optimum).
+    Each step solves the normal equations restricted to the free set `{x > 0 or grad < -tol / 2}`
+    with `tol = rtol * max |c|` (an epsilon-active set; a Cholesky factorization of the free block
+    of `B` only, gathered into the next of some fixed sizes) and takes the longest step along the
+    projected path that decreases the objective (backtracking on the exact change of the
+    objective, which float32 resolves near the optimum).
     It stops when the KKT residual `max |min(x, B x - c)|` falls below `rtol * max |c|`: then `x`
     is optimal to that tolerance.
     `rtol=None` picks the round-off floor of the dtype: 1e-4 in float32 (a 2048-term product
