@@ -18,7 +18,7 @@ import numpy as np
 import trimesh
 
 from ..scene import Camera, Scene, Surface
-from ..transport._embree import RayCaster, pixel_centre_hits
+from ..transport._embree import RayCaster, pixel_centre_rays
 
 SCENE_CLASSES = ("L", "T", "table")
 # Where a hidden object may stand (polar, about the corner): the label grid covers this range.
@@ -224,5 +224,5 @@ def _hidden_position(rng, p, radius):
 
 def object_visible(scene: CornerScene) -> bool:
     """Does any camera pixel centre see the hidden object (first hit of the primary ray)?"""
-    hits = pixel_centre_hits(RayCaster(scene.with_object()), scene.camera)
-    return bool(np.any(hits.surface == len(scene.meshes)))
+    first = RayCaster(scene.with_object()).first_surface(*pixel_centre_rays(scene.camera))
+    return bool(np.any(first == len(scene.meshes)))

@@ -9,6 +9,11 @@ from embreex.mesh_construction import TriangleMesh
 from ..scene import Camera, Scene
 
 
+def _f32(a) -> np.ndarray:
+    """A C-contiguous, writable float32 copy or view (Embree's buffers may not be read-only broadcasts)."""
+    return np.require(a, np.float32, ["C", "W"])
+
+
 class Hits(NamedTuple):
     """Closest hits of a batch of rays; `surface == -1` where a ray hit nothing."""
 
@@ -41,25 +46,25 @@ class RayCaster:
         """Boolean `(n,)`: does the ray `origins + t directions, t > 0` hit anything?"""
         if len(origins) == 0:
             return np.zeros(0, dtype=bool)
-        o = np.ascontiguousarray(origins, dtype=np.float32)
-        d = np.ascontiguousarray(directions, dtype=np.float32)
-        return self._embree.run(o, d, query="OCCLUDED") != -1
+        return self._embree.run(_f32(origins), _f32(directions), query="OCCLUDED") != -1
 
     def occluded_within(self, origins: np.ndarray, directions: np.ndarray, distance: np.ndarray) -> np.ndarray:
         """Boolean `(n,)`: does the ray hit a surface closer than `distance` (a shadow ray to a point)?"""
         if len(origins) == 0:
             return np.zeros(0, dtype=bool)
-        o = np.ascontiguousarray(origins, dtype=np.float32)
-        d = np.ascontiguousarray(directions, dtype=np.float32)
-        t = np.ascontiguousarray(np.broadcast_to(distance, (len(o),)), dtype=np.float32)
-        return self._embree.run(o, d, dists=t, query="OCCLUDED") != -1
+        t = _f32(np.broadcast_to(distance, (len(origins),)))
+        return self._embree.run(_f32(origins), _f32(directions), dists=t, query="OCCLUDED") != -1
+
+    def first_surface(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """`(n,)` int: the surface index each ray hits first (-1 for none); no hit geometry computed."""
+        if len(origins) == 0:
+            return np.zeros(0, dtype=np.int64)
+        return self._embree.run(_f32(origins), _f32(directions), output=1)["geomID"].astype(np.int64)
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """Closest hit of each ray, with the albedo and a normal facing back along the ray."""
-        o = np.ascontiguousarray(origins, dtype=np.float32)
-        d = np.ascontiguousarray(directions, dtype=np.float32)
-        n = len(o)
-        out = self._embree.run(o, d, output=1)
+        n = len(origins)
+        out = self._embree.run(_f32(origins), _f32(directions), output=1)
         surface = out["geomID"].astype(np.int64)
         face = out["primID"].astype(np.int64)
         bary = np.stack([out["u"], out["v"]], -1).astype(np.float64)
@@ -79,11 +84,16 @@ class RayCaster:
         return Hits(surface, face, bary, position, normal, albedo)
 
 
-def pixel_centre_hits(caster: RayCaster, camera: Camera) -> Hits:
-    """Closest hits of one ray through each pixel centre, `(H*W,)` in row-major order."""
+def pixel_centre_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """`(origins, directions)` `(H*W, 3)` float64 of one ray through each pixel centre, row-major."""
     rows, cols = np.meshgrid(np.arange(camera.height) + 0.5, np.arange(camera.width) + 0.5, indexing="ij")
     d = np.asarray(camera.ray_directions(np.stack([rows, cols], -1).reshape(-1, 2)), dtype=np.float64)
-    return caster.intersect(np.broadcast_to(np.asarray(camera.origin, np.float64), d.shape), d)
+    return np.broadcast_to(np.asarray(camera.origin, np.float64), d.shape), d
+
+
+def pixel_centre_hits(caster: RayCaster, camera: Camera) -> Hits:
+    """Closest hits of one ray through each pixel centre, `(H*W,)` in row-major order."""
+    return caster.intersect(*pixel_centre_rays(camera))
 
 
 def primary_hits(caster: RayCaster, camera: Camera, pixel_samples: int, seed: int):
