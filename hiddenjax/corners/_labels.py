@@ -89,6 +89,8 @@ def fit_gaussian(heat: Float[Array, "T R"], window: float = 8.0, iterations: int
     Initialised from the weighted moments of the window, then damped Gauss-Newton
     (Levenberg-Marquardt with a fixed schedule) on amplitude, mean, precision Cholesky factor and
     offset. Differentiable (the window position is piecewise constant), jit- and vmap-friendly.
+    The precision factor is kept bounded (a flat map has no finite best width), so the covariance
+    is finite and positive definite for any input.
     """
     heat = jnp.asarray(heat)
     T, R = heat.shape
@@ -110,6 +112,13 @@ def fit_gaussian(heat: Float[Array, "T R"], window: float = 8.0, iterations: int
     def residual(p):
         return inside * (_model(p, cells) - flat)
 
+    # A flat heat map has no width: keep the precision factor's diagonal within 1/(2 window) .. 10
+    # per cell and its off-diagonal within +-10, so the covariance stays finite where a near-flat
+    # map would send a width to infinity (and an untrained network's saliency to NaN).
+    big = jnp.inf
+    lower = jnp.array([-big, -big, -big, -jnp.log(2.0 * window), -10.0, -jnp.log(2.0 * window), -big], heat.dtype)
+    upper = jnp.array([big, big, big, jnp.log(10.0), 10.0, jnp.log(10.0), big], heat.dtype)
+
     def step(carry, _):
         p, lam = carry
         r = residual(p)
@@ -117,14 +126,15 @@ def fit_gaussian(heat: Float[Array, "T R"], window: float = 8.0, iterations: int
         JtJ = J.T @ J
         g = J.T @ r
         delta = jnp.linalg.solve(JtJ + lam * (jnp.diag(jnp.diag(JtJ)) + 1e-9 * jnp.eye(7, dtype=p.dtype)), g)
-        trial = p - delta
+        trial = jnp.clip(p - delta, lower, upper)
         better = jnp.sum(residual(trial) ** 2) < jnp.sum(r**2)
         return (jnp.where(better, trial, p), jnp.where(better, lam * 0.3, lam * 10.0)), None
 
     (params, _), _ = jax.lax.scan(step, (params, jnp.asarray(1e-3, heat.dtype)), None, length=iterations)
     a, mi, mj, l11, l21, l22, c = params
-    L = jnp.array([[jnp.exp(l11), 0.0], [l21, jnp.exp(l22)]])
-    return GaussianFit(jnp.stack([mi, mj]), jnp.linalg.inv(L @ L.T), a, c)
+    # cov = (L L^T)^-1 = L^-T L^-1 with L^-1 in closed form: symmetric positive definite by construction.
+    Linv = jnp.array([[jnp.exp(-l11), 0.0], [-l21 * jnp.exp(-l11 - l22), jnp.exp(-l22)]])
+    return GaussianFit(jnp.stack([mi, mj]), Linv.T @ Linv, a, c)
 
 
 def locate(heat: Float[Array, "T R"], grid: PolarGrid) -> tuple[Float[Array, "2"], Float[Array, "2 2"]]:
