@@ -140,6 +140,23 @@ def test_network_maps_an_image_to_grid_logits():
         hc.CornerNet(jax.random.key(0), size=30)
 
 
+def test_compression_is_a_scale_free_odd_signed_root_with_finite_gradients():
+    rng = np.random.default_rng(0)
+    image = jnp.asarray(rng.normal(size=(16, 16)) * np.exp(rng.normal(size=(16, 16))), jnp.float32).at[0, 0].set(0.0)
+    out = hc.compress(image)
+    u = image / jnp.sqrt(jnp.mean(image**2))
+    big = jnp.abs(u) > 0.1  # away from the smoothing at |u| ~ 1e-3
+    np.testing.assert_allclose(out[big], (jnp.sign(u) * jnp.sqrt(jnp.abs(u)))[big], rtol=1e-4)
+    np.testing.assert_allclose(hc.compress(37.0 * image), out, rtol=1e-5, atol=1e-6)  # exposure does not matter
+    np.testing.assert_allclose(hc.compress(-image), -out, rtol=1e-6)  # signed (temporal) differences keep their sign
+    assert hc.compress(image, power=1.0) is image
+    g = jax.grad(lambda y: jnp.sum(hc.compress(y) * (1.0 + jnp.arange(256.0).reshape(16, 16))))(image)
+    assert np.all(np.isfinite(g)) and float(jnp.abs(g[0, 0])) > 0  # saliency is defined at zero pixels
+    assert np.all(np.isfinite(hc.compress(jnp.zeros((8, 8)))))
+    with pytest.raises(ValueError, match="power"):
+        hc.CornerNet(jax.random.key(0), size=32, power=0.0)
+
+
 def _tiny_problem(n=16):
     rng = np.random.default_rng(0)
     positions = rng.uniform([0.05, 0.05], [0.3, 0.3], (n, 2)).astype(np.float32)
@@ -153,7 +170,7 @@ def test_one_training_step_reduces_the_loss():
     model, images, positions, grid = _tiny_problem()
     config = hc.TrainConfig(steps=1, batch=16, learning_rate=1e-3, noise_var=0.0)
     labels = jax.vmap(grid.label)(jnp.asarray(positions))
-    loss = lambda m: float(hc.heatmap_loss(jax.vmap(m)(jax.vmap(hc.instance_normalize)(jnp.asarray(images))), labels))
+    loss = lambda m: float(hc.heatmap_loss(jax.vmap(m)(jnp.asarray(images)), labels))
     trained, log = hc.train(model, images, positions, config, grid=grid, progress=False)
     assert log.loss[0] == pytest.approx(loss(model), rel=1e-5)
     assert loss(trained) < loss(model)
@@ -161,13 +178,11 @@ def test_one_training_step_reduces_the_loss():
 
 def test_training_resumes_from_a_checkpoint_exactly(tmp_path):
     model, images, positions, grid = _tiny_problem()
-    full, log_full = hc.train(model, images, positions, hc.TrainConfig(steps=4, batch=8, checkpoint_every=2),
-                              grid=grid, progress=False)
+    config = lambda steps: hc.TrainConfig(steps=steps, batch=8, checkpoint_every=2, decay_steps=4)  # one schedule
+    full, log_full = hc.train(model, images, positions, config(4), grid=grid, progress=False)
     ckpt = tmp_path / "cnn.eqx"
-    hc.train(model, images, positions, hc.TrainConfig(steps=2, batch=8, checkpoint_every=2), grid=grid,
-             checkpoint=ckpt, progress=False)
-    resumed, log = hc.train(model, images, positions, hc.TrainConfig(steps=4, batch=8, checkpoint_every=2),
-                            grid=grid, checkpoint=ckpt, progress=False)
+    hc.train(model, images, positions, config(2), grid=grid, checkpoint=ckpt, progress=False)
+    resumed, log = hc.train(model, images, positions, config(4), grid=grid, checkpoint=ckpt, progress=False)
     np.testing.assert_allclose(log.loss, log_full.loss, rtol=1e-6)
     for a, b in zip(jax.tree.leaves(resumed), jax.tree.leaves(full)):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)

@@ -23,6 +23,7 @@ from ._dataset import CornerDataset as CornerDataset
 from ._dataset import generate_dataset as generate_dataset
 from ._dataset import render_sample as render_sample
 from ._network import CornerNet as CornerNet
+from ._network import compress as compress
 from ._network import heatmap_loss as heatmap_loss
 from ._network import instance_normalize as instance_normalize
 from ._network import predict_heatmap as predict_heatmap

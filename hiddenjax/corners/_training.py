@@ -1,9 +1,9 @@
 """Training the localization CNN: Adam on eq. 3.1 with noise augmentation, resumable checkpoints.
 
 Each step draws a minibatch (the draw depends only on `(seed, step)`, so a resumed run sees the
-same batches as an uninterrupted one), renders the Gaussian labels on the polar grid, instance
-normalizes the images and adds Gaussian noise of variance `noise_var` (0.05 in the thesis: without
-it the network memorizes rendering artefacts). Checkpoints hold the model, the optimizer state,
+same batches as an uninterrupted one), renders the Gaussian labels on the polar grid, preprocesses
+the images (`CornerNet.preprocess`: compression, instance normalization) and adds Gaussian noise
+of variance `noise_var` (0.05 in the thesis: without it the network memorizes rendering artefacts). Checkpoints hold the model, the optimizer state,
 the step and the loss history (equinox leaf serialisation, written to a temporary file and
 renamed, so an interrupted write never leaves a broken checkpoint).
 """
@@ -22,16 +22,22 @@ from tqdm.auto import tqdm
 
 from .._files import atomic_path
 from ._labels import PolarGrid
-from ._network import CornerNet, heatmap_loss, instance_normalize
+from ._network import CornerNet, heatmap_loss
 
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """Training settings. The thesis used 30k iterations at batch 64 on a GPU; these defaults fit a CPU budget."""
+    """Training settings. The thesis used 30k iterations at batch 64 on a GPU; these defaults fit a CPU budget.
+
+    The learning rate decays from `learning_rate` to 0 on a cosine over `decay_steps` (0: over
+    `steps`; a negative value keeps it constant). On 16000 L scenes at 3000 steps, 3e-3 with the
+    cosine reached d = 5.20 cm against 5.45 (constant 1e-3) and 6.03 (cosine from 1e-2, the thesis' rate).
+    """
 
     steps: int = 2000
     batch: int = 64
-    learning_rate: float = 1e-3
+    learning_rate: float = 3e-3
+    decay_steps: int = 0
     weight_decay: float = 1e-4
     noise_var: float = 0.05
     label_sigma: float = 3.0
@@ -47,10 +53,10 @@ class TrainingLog(NamedTuple):
 
 def _batch_loss(model, images, positions, key, grid, config, train: bool):
     labels = jax.vmap(lambda p: grid.label(p, config.label_sigma))(positions)
-    x = jax.vmap(instance_normalize)(images)
+    x = jax.vmap(model.preprocess)(images)
     if train:
         x = x + jnp.sqrt(config.noise_var) * jax.random.normal(key, x.shape, x.dtype)
-    return heatmap_loss(jax.vmap(model)(x), labels)
+    return heatmap_loss(jax.vmap(model.logits)(x), labels)
 
 
 def train(model: CornerNet, images, positions, config: TrainConfig = TrainConfig(), *, grid: PolarGrid = PolarGrid(),
@@ -71,7 +77,9 @@ def train(model: CornerNet, images, positions, config: TrainConfig = TrainConfig
         raise ValueError(f"expected images (N, H, W) and positions (N, 2); got {images.shape} and {positions.shape}")
     if len(images) < config.batch:
         raise ValueError(f"{len(images)} training images is fewer than one batch of {config.batch}")
-    optimizer = optax.adamw(config.learning_rate, weight_decay=config.weight_decay)
+    horizon = config.decay_steps or config.steps
+    rate = optax.cosine_decay_schedule(config.learning_rate, horizon) if horizon > 0 else config.learning_rate
+    optimizer = optax.adamw(rate, weight_decay=config.weight_decay)
     state = optimizer.init(eqx.filter(model, eqx.is_array))
     start, losses, vals = 0, [], []
     if checkpoint is not None and Path(checkpoint).exists():
