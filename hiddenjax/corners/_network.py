@@ -31,6 +31,8 @@ def compress(image: Float[Array, "H W"], power: float = 0.5, eps: float = 1e-3) 
     if power == 1:
         return image
     u = image * jax.lax.rsqrt(jnp.mean(image**2) + jnp.finfo(image.dtype).tiny)
+    if power == 0.5:  # sqrt(rsqrt(.)), not a fractional power: training steps 2x faster on CPU
+        return u * jnp.sqrt(jax.lax.rsqrt(u**2 + eps**2))
     return u * (u**2 + eps**2) ** ((power - 1) / 2)
 
 
