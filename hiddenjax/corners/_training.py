@@ -3,9 +3,10 @@
 Each step draws a minibatch (the draw depends only on `(seed, step)`, so a resumed run sees the
 same batches as an uninterrupted one), renders the Gaussian labels on the polar grid, preprocesses
 the images (`CornerNet.preprocess`: compression, instance normalization) and adds Gaussian noise
-of variance `noise_var` (0.05 in the thesis: without it the network memorizes rendering artefacts). Checkpoints hold the model, the optimizer state,
-the step and the loss history (equinox leaf serialisation, written to a temporary file and
-renamed, so an interrupted write never leaves a broken checkpoint).
+of variance `noise_var` (0.05 in the thesis: without it the network memorizes rendering
+artefacts). Checkpoints hold the model, the optimizer state, the step and the loss history
+(equinox leaf serialisation, written to a temporary file and renamed, so an interrupted write
+never leaves a broken checkpoint).
 """
 
 import dataclasses
