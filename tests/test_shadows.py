@@ -126,52 +126,63 @@ def box_scene():
     return scene, cam, light
 
 
-def _edge_and_shadow_pixels(cam, light, a, b, inward):
-    """Pixels on a box edge, a band 2-10 px inside its face, and pixels on its shadow on y = 0."""
+def _edge_and_shadow_pixels(cam, light, a, b):
+    """Pixels on a box edge and on its shadow on y = 0, and the shadow's world points."""
     pts = np.stack([a + t * (b - a) for t in np.linspace(0.15, 0.85, 12)])
     edge_px = np.asarray(cam.project(pts)[0], np.float64)
-    band = np.stack([a + t * (b - a) for t in np.linspace(0.1, 0.9, 24)])
-    band_px = np.asarray(cam.project(band)[0], np.float64)
-    step = np.asarray(cam.project(band + 0.02 * inward)[0], np.float64) - band_px
-    step /= np.linalg.norm(step, axis=1, keepdims=True)
-    face_px = np.concatenate([band_px + k * step for k in np.arange(2.0, 11.0)])
     t = light[1] / (light[1] - pts[:, 1])
     shadow = light + t[:, None] * (pts - light)
-    return edge_px, face_px, np.asarray(cam.project(shadow)[0], np.float64), shadow
+    return edge_px, np.asarray(cam.project(shadow)[0], np.float64), shadow
 
 
-# Three silhouette edges of the box (from the light) whose shadows fall on the visible floor:
-# the top-left and top-front edges and the front-right vertical one; no point is on all three.
+def _pixels(cam):
+    """Every pixel centre `(H*W, 2)` as `(row, col)`."""
+    rows, cols = np.meshgrid(np.arange(cam.height) + 0.5, np.arange(cam.width) + 0.5, indexing="ij")
+    return np.stack([rows, cols], -1).reshape(-1, 2)
+
+
+def _pixels_inside(cam, corners, margin=0.5):
+    """Pixel centres at least `margin` px inside the projection of a convex planar polygon (a face)."""
+    p = np.asarray(cam.project(np.asarray(corners))[0], np.float64)
+    px, keep = _pixels(cam), True
+    for i in range(len(p)):
+        e = p[(i + 1) % len(p)] - p[i]
+        n = np.array([-e[1], e[0]]) / np.linalg.norm(e)
+        n = n if (p.mean(0) - p[i]) @ n > 0 else -n
+        keep = keep & ((px - p[i]) @ n >= margin)
+    return px[keep]
+
+
+_H, _Y = 0.15, 0.3 + 1e-4
+_TOP = np.array([[-_H, _Y, -_H], [_H, _Y, -_H], [_H, _Y, _H], [-_H, _Y, _H]])
+_FRONT = np.array([[-_H, 1e-4, _H], [_H, 1e-4, _H], [_H, _Y, _H], [-_H, _Y, _H]])
+# Three silhouette edges of the box (from the light) whose shadows fall on the visible floor, each
+# with the visible face it bounds: the top-left and top-front edges (top face) and the front-right
+# vertical one (front face); no point is on all three.
 _BOX_EDGES = [
-    (np.array([-0.15, 0.3, -0.15]), np.array([-0.15, 0.3, 0.15]), np.array([1.0, 0, 0])),
-    (np.array([-0.15, 0.3, 0.15]), np.array([0.15, 0.3, 0.15]), np.array([0, 0, -1.0])),
-    (np.array([0.15, 0.0, 0.15]), np.array([0.15, 0.3, 0.15]), np.array([-1.0, 0, 0])),
+    (np.array([-0.15, 0.3, -0.15]), np.array([-0.15, 0.3, 0.15]), _TOP),
+    (np.array([-0.15, 0.3, 0.15]), np.array([0.15, 0.3, 0.15]), _TOP),
+    (np.array([0.15, 0.0, 0.15]), np.array([0.15, 0.3, 0.15]), _FRONT),
 ]
 
 
 def _localize_from_depth(depth, cam, light):
-    points = sh.depth_to_points(depth, cam)
+    # The receiver: one plane through every pixel's depth, refitted on the samples within 2.5 cm
+    # (the box's pixels drop out).
+    floor = sh.fit_plane_to_depth(depth, cam, _pixels(cam), inlier=0.025)
     edges, shadows = [], []
-    for a, b, inward in _BOX_EDGES:
-        epx, fpx, spx, _ = _edge_and_shadow_pixels(cam, light, a, b, inward)
-        # The depth jumps at the edge: fit the face's plane from pixels inside it, lift the edge
-        # pixels onto it and fit a line; each of 12 shadow points adds a plane.
-        face = sh.fit_plane(np.asarray(sh.sample_points(points, fpx)))
+    for a, b, corners in _BOX_EDGES:
+        epx, spx, _ = _edge_and_shadow_pixels(cam, light, a, b)
+        # The depth jumps at the edge: fit the face's plane from the pixels inside it, lift the
+        # edge pixels onto it and fit a line; each of 12 shadow points lifted onto the floor adds a plane.
+        face = sh.fit_plane_to_depth(depth, cam, _pixels_inside(cam, corners))
         edge = sh.fit_edge(sh.lift_to_plane(cam, epx, *face))
-        # Likewise the receiver: a plane through the depth around the shadow, the shadow lifted on it.
-        around = (spx[:, None] + np.mgrid[-8:9:2, -8:9:2].reshape(2, -1).T[None]).reshape(-1, 2)
-        near = np.asarray(sh.sample_points(points, around))
-        floor = sh.fit_plane(near)
-        for _ in range(2):  # drop samples on the box (a shadow starts at its base)
-            floor = sh.fit_plane(near[np.abs((near - floor[0]) @ floor[1]) < 0.025])
         for q in sh.lift_to_plane(cam, spx, *floor):
             edges.append(edge)
             shadows.append(q)
     return sh.localize_from_edges(np.stack(edges), np.stack(shadows))
 
 
-@pytest.mark.xfail(strict=True, reason="target missed: 1 cm depth noise moves the estimate 1.0-5.3 cm over 5 seeds "
-                   "(one of 5 over 5 cm; 160x120, ~1 cm pixels)")
 def test_depth_map_lifts_edges_and_1cm_depth_noise_moves_the_estimate_under_5cm(box_scene):
     scene, cam, light = box_scene
     depth = hj.depth_map(scene, cam)
@@ -180,14 +191,66 @@ def test_depth_map_lifts_edges_and_1cm_depth_noise_moves_the_estimate_under_5cm(
     assert (np.abs(truth[..., 1]) < 1e-3).mean() > 0.5
     clean = _localize_from_depth(depth, cam, light)
     assert clean.kind == "point"
-    assert np.linalg.norm(clean.point - light) < 0.03  # measured 2.5 cm: a few base samples stay
+    assert np.linalg.norm(clean.point - light) < 0.005  # measured 1.5 mm
     moves = []
-    for seed in range(5):
+    for seed in range(10):
         noisy = depth + np.random.default_rng(seed).normal(0, 0.01, depth.shape).astype(np.float32)
         loc = _localize_from_depth(noisy, cam, light)
         assert loc.kind == "point"
         moves.append(np.linalg.norm(loc.point - clean.point))
+    # Measured over these 10 draws: at most 3.1 cm, RMS 1.9 cm. Over 100 draws: RMS 2.5 cm, 95th
+    # percentile 4.2 cm, 4 draws above 5 cm (the three planes are nearly dependent: singular values
+    # of N about 10:1, so 1 mm at an edge is 1-2 cm at the light).
     assert max(moves) < 0.05, moves
+    assert np.sqrt(np.mean(np.square(moves))) < 0.03, moves
+
+
+def test_plane_from_depth_is_exact_unbiased_and_robust(box_scene):
+    scene, cam, _ = box_scene
+    depth = hj.depth_map(scene, cam)
+    front = _pixels_inside(cam, _FRONT)
+    z = np.array([0.0, 0.0, 1.0])
+    centre, n = sh.fit_plane_to_depth(depth, cam, front)
+    np.testing.assert_allclose(n, z, atol=1e-5)  # faces the camera, which is at +z
+    assert abs(centre[2] - 0.15) < 1e-5
+    # 1 cm depth noise along the rays: the orthogonal (TLS) fit of the lifted points tilts this
+    # obliquely seen face (measured 7 mrad over 200 draws); the depth-space fit does not (0.4).
+    tls, ml = [], []
+    for seed in range(64):
+        noisy = depth + np.random.default_rng(seed).normal(0, 0.01, depth.shape).astype(np.float32)
+        tls.append(sh.fit_plane(np.asarray(sh.sample_points(sh.depth_to_points(noisy, cam), front)))[1])
+        ml.append(sh.fit_plane_to_depth(noisy, cam, front)[1])
+    def tilt(normals):  # angle of the mean normal from the truth
+        mean = np.mean([m * np.sign(m @ z) for m in normals], axis=0)
+        return np.arccos(min(1.0, mean @ z / np.linalg.norm(mean)))
+
+    assert tilt(tls) > 4e-3 and tilt(ml) < 1.5e-3, (tilt(tls), tilt(ml))
+    # Every pixel of the image, the box's among them: only the trimmed fit finds the floor.
+    everything = _pixels(cam)
+    points = np.asarray(sh.depth_to_points(depth, cam)).reshape(-1, 3)
+    floor = points[np.abs(points[:, 1]) < 5e-5]  # the box's base is 1e-4 above the floor
+    centre, n = sh.fit_plane_to_depth(depth, cam, everything)
+    assert np.abs((floor - centre) @ n).max() > 0.01  # measured 1.9 cm: lifted by the box
+    centre, n = sh.fit_plane_to_depth(depth, cam, everything, inlier=0.025)
+    # Box pixels within 2.5 cm of the floor stay in: measured 1.6e-5 rad and 0.06 mm.
+    np.testing.assert_allclose(n, [0, 1, 0], atol=1e-4)
+    assert np.abs((floor - centre) @ n).max() < 2e-4
+
+
+def test_plane_from_depth_rejects_bad_input(box_scene):
+    scene, cam, _ = box_scene
+    depth = hj.depth_map(scene, cam)
+    line = np.stack([np.full(20, 60.5), np.arange(20) + 40.5], -1)
+    with pytest.raises(ValueError, match="not on one line"):
+        sh.fit_plane_to_depth(depth, cam, line)
+    holes = depth.copy()
+    holes[60, 40] = 0.0
+    with pytest.raises(ValueError, match="no depth"):
+        sh.fit_plane_to_depth(holes, cam, [[60.5, 40.5], [61.5, 40.5], [60.5, 41.5], [61.5, 41.5]])
+    with pytest.raises(ValueError, match="inlier"):
+        sh.fit_plane_to_depth(depth, cam, _pixels(cam), inlier=0.0)
+    with pytest.raises(ValueError, match="depth shape"):
+        sh.fit_plane_to_depth(depth[:-1], cam, line)
 
 
 def test_depth_normals_face_the_camera_and_are_up_on_the_floor(box_scene):
@@ -204,8 +267,8 @@ def test_association_accepts_true_pairs_and_rejects_swapped_ones(box_scene):
     scene, cam, light = box_scene
     up = np.array([0.0, 1.0, 0.0])
     found = []
-    for a, b, inward in _BOX_EDGES:
-        _, _, spx, spts = _edge_and_shadow_pixels(cam, light, a, b, inward)
+    for a, b, _ in _BOX_EDGES:
+        _, spx, spts = _edge_and_shadow_pixels(cam, light, a, b)
         found.append((np.stack([a, b]), spx[[0, -1]], spts[0]))
     for i, (edge, _, _) in enumerate(found):
         for j, (_, spx, q) in enumerate(found):

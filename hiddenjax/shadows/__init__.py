@@ -5,6 +5,7 @@ from ._depth import depth_normals as depth_normals
 from ._depth import depth_to_points as depth_to_points
 from ._depth import fit_edge as fit_edge
 from ._depth import fit_plane as fit_plane
+from ._depth import fit_plane_to_depth as fit_plane_to_depth
 from ._depth import lift_to_plane as lift_to_plane
 from ._depth import sample_points as sample_points
 from ._edges import edge_angle as edge_angle

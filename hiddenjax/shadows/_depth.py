@@ -122,6 +122,76 @@ def fit_plane(points):
     return centre, np.linalg.svd(p - centre, full_matrices=False)[2][2]
 
 
+def fit_plane_to_depth(depth, camera: Camera, pixels, *, inlier: float | None = None, max_steps: int = 20):
+    """`(centre (3,), unit normal (3,))` of the plane that best explains a z-buffer at `pixels`.
+
+    A depth camera's error is along each pixel's ray, not isotropic in 3-D, so the maximum-
+    likelihood plane for Gaussian depth noise minimizes `sum (z_k - z(u_k))^2` over the measured
+    depths `z_k`. A plane `a . X = 1` in camera coordinates is seen at depth
+    `z(u) = 1 / (a . u)` with `u = ((col - cx)/fx, (row - cy)/fy, 1)`; `a` is found by Gauss-Newton
+    from the linearized fit `min sum (z_k^2 (a . u_k) - z_k)^2`. `fit_plane`'s orthogonal fit to
+    the lifted points treats the noise as isotropic, which tilts an obliquely seen plane by the
+    order of `sigma^2 / spread^2` (measured: 7 mrad on the 30 cm faces of the tests' box with 1 cm
+    noise, 1 mm at their edges; this fit: below 0.4 mrad).
+
+    **Arguments:**
+    - `depth (H, W)`: camera-space z per pixel (`hj.depth_map`), metres.
+    - `pixels (M, 2)`: `(row, col)` of samples on the plane (pixel centres at `+.5`; values between
+      centres are bilinear).
+    - `inlier`: if given, metres: refit on the samples within this depth of the current plane until
+      the set stops changing (robust to a region that also sees other surfaces, e.g. a floor fitted
+      from every pixel of an image with an object on it).
+
+    **Returns:** the centroid of the samples lifted onto the plane, and the normal facing the camera.
+    """
+    z_map = np.asarray(depth, dtype=np.float64)
+    if z_map.shape != (camera.height, camera.width):
+        raise ValueError(f"depth shape {z_map.shape} does not match the camera's {(camera.height, camera.width)}")
+    px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    z = np.asarray(sample_points(z_map[..., None], px), dtype=np.float64)[:, 0]
+    bad = ~(np.isfinite(z) & (z > 0))
+    if np.any(bad):
+        raise ValueError(f"{bad.sum()} of the {len(z)} pixels have no depth (0, negative or not finite), "
+                         f"e.g. at (row, col) {px[bad][0].tolist()}: leave pixels without a surface out")
+    fx, fy, cx, cy = np.asarray(camera.intrinsics, dtype=np.float64)
+    u = np.stack([(px[:, 1] - cx) / fx, (px[:, 0] - cy) / fy, np.ones(len(px))], axis=-1)
+
+    def fit(keep):
+        uk, zk = u[keep], z[keep]
+        s = np.linalg.svd(uk, compute_uv=False) if len(uk) >= 3 else np.zeros(1)
+        if len(uk) < 3 or s[-1] <= 1e-9 * s[0]:
+            raise ValueError(f"fit_plane_to_depth needs at least 3 pixels not on one line, got {len(uk)}"
+                             + ("" if keep.all() else f" within inlier={inlier} m of the plane"))
+        a = np.linalg.lstsq(uk * (zk**2)[:, None], zk, rcond=None)[0]
+        for _ in range(max_steps):
+            w = uk @ a
+            step = np.linalg.lstsq(-uk / (w**2)[:, None], zk - 1 / w, rcond=None)[0]
+            a = a + step
+            if np.linalg.norm(step) <= 1e-12 * np.linalg.norm(a):
+                break
+        return a
+
+    keep = np.ones(len(z), dtype=bool)
+    a = fit(keep)
+    if inlier is not None:
+        if not inlier > 0:
+            raise ValueError(f"inlier must be a positive distance in metres, got {inlier}")
+        for _ in range(max_steps):
+            w = u @ a
+            new = (w > 0) & (np.abs(z - 1 / np.where(w > 0, w, 1.0)) < inlier)
+            if np.array_equal(new, keep):
+                break
+            keep = new
+            a = fit(keep)
+    w = u[keep] @ a
+    if np.any(w <= 0):
+        raise ValueError("the fitted plane passes behind the camera for some pixels: they do not see one plane")
+    R, t = np.asarray(camera.rotation, np.float64), np.asarray(camera.translation, np.float64)
+    centre = R.T @ ((u[keep] / w[:, None]).mean(axis=0) - t)
+    # Points on the plane have a . X = 1 and the camera a . 0 = 0 < 1: -a points towards it.
+    return centre, -(R.T @ a) / np.linalg.norm(a)
+
+
 def lift_to_plane(camera: Camera, pixels, centre, normal) -> np.ndarray:
     """World points `(..., 3)` where the rays through `(row, col)` pixels meet a plane.
 
