@@ -117,13 +117,8 @@ def test_degenerate_correspondences_raise():
 @pytest.fixture(scope="module")
 def box_scene():
     """A 0.3 m box on a 1 m scene's floor, a light above: edges, their shadows, a depth map."""
-    box = trimesh.creation.box([0.3, 0.3, 0.3])
-    box.apply_translation([0, 0.15 + 1e-4, 0])
-    plane = hj.scenes.ground_plane(4.0)
-    scene = hj.Scene([hj.Surface(plane, 0.8), hj.Surface(box, 0.5, observe=False)])
-    cam = hj.Camera.look_at([0.2, 1.6, 1.4], [0.0, 0.0, -0.1], [0, 1, 0], 50.0, 160, 120)
-    light = np.array([0.6, 0.9, -0.3])
-    return scene, cam, light
+    (scene, cam), _, _ = hj.scenes.box_on_floor(0.3)
+    return scene, cam, np.array([0.6, 0.9, -0.3])
 
 
 def _edge_and_shadow_pixels(cam, light, a, b):
@@ -141,46 +136,24 @@ def _pixels(cam):
     return np.stack([rows, cols], -1).reshape(-1, 2)
 
 
-def _pixels_inside(cam, corners, margin=0.5):
-    """Pixel centres at least `margin` px inside the projection of a convex planar polygon (a face)."""
-    p = np.asarray(cam.project(np.asarray(corners))[0], np.float64)
-    px, keep = _pixels(cam), True
-    for i in range(len(p)):
-        e = p[(i + 1) % len(p)] - p[i]
-        n = np.array([-e[1], e[0]]) / np.linalg.norm(e)
-        n = n if (p.mean(0) - p[i]) @ n > 0 else -n
-        keep = keep & ((px - p[i]) @ n >= margin)
-    return px[keep]
+def _pixels_inside(cam, corners):
+    return sh.pixels_inside(np.asarray(cam.project(corners)[0]), (cam.height, cam.width))
 
 
-_H, _Y = 0.15, 0.3 + 1e-4
-_TOP = np.array([[-_H, _Y, -_H], [_H, _Y, -_H], [_H, _Y, _H], [-_H, _Y, _H]])
-_FRONT = np.array([[-_H, 1e-4, _H], [_H, 1e-4, _H], [_H, _Y, _H], [-_H, _Y, _H]])
-# Three silhouette edges of the box (from the light) whose shadows fall on the visible floor, each
-# with the visible face it bounds: the top-left and top-front edges (top face) and the front-right
-# vertical one (front face); no point is on all three.
-_BOX_EDGES = [
-    (np.array([-0.15, 0.3, -0.15]), np.array([-0.15, 0.3, 0.15]), _TOP),
-    (np.array([-0.15, 0.3, 0.15]), np.array([0.15, 0.3, 0.15]), _TOP),
-    (np.array([0.15, 0.0, 0.15]), np.array([0.15, 0.3, 0.15]), _FRONT),
-]
+# The box's three silhouette edges (from the light) whose shadows fall on the visible floor, each
+# with the corners of the visible face it bounds (top, top, front); no point is on all three.
+_, _EDGES, _FACES = hj.scenes.box_on_floor(0.3)
+_BOX_EDGES = [(a, b, face) for (a, b), face in zip(_EDGES, _FACES)]
+_TOP, _FRONT = _FACES[0], _FACES[2]
 
 
 def _localize_from_depth(depth, cam, light):
-    # The receiver: one plane through every pixel's depth, refitted on the samples within 2.5 cm
-    # (the box's pixels drop out).
-    floor = sh.fit_plane_to_depth(depth, cam, _pixels(cam), inlier=0.025)
-    edges, shadows = [], []
-    for a, b, corners in _BOX_EDGES:
-        epx, spx, _ = _edge_and_shadow_pixels(cam, light, a, b)
-        # The depth jumps at the edge: fit the face's plane from the pixels inside it, lift the
-        # edge pixels onto it and fit a line; each of 12 shadow points lifted onto the floor adds a plane.
-        face = sh.fit_plane_to_depth(depth, cam, _pixels_inside(cam, corners))
-        edge = sh.fit_edge(sh.lift_to_plane(cam, epx, *face))
-        for q in sh.lift_to_plane(cam, spx, *floor):
-            edges.append(edge)
-            shadows.append(q)
-    return sh.localize_from_edges(np.stack(edges), np.stack(shadows))
+    # Each edge lifts onto the plane of the face it bounds (the pixels inside it), its 12 shadow
+    # points onto the floor, fitted from every pixel with the box's pixels trimmed (2.5 cm).
+    annotations = [_edge_and_shadow_pixels(cam, light, a, b)[:2] for a, b, _ in _BOX_EDGES]
+    return sh.localize_from_depth(depth, cam, [e for e, _ in annotations],
+                                  [_pixels_inside(cam, face) for _, _, face in _BOX_EDGES],
+                                  [s for _, s in annotations]).localization
 
 
 def test_depth_map_lifts_edges_and_1cm_depth_noise_moves_the_estimate_under_5cm(box_scene):
@@ -191,7 +164,7 @@ def test_depth_map_lifts_edges_and_1cm_depth_noise_moves_the_estimate_under_5cm(
     assert (np.abs(truth[..., 1]) < 1e-3).mean() > 0.5
     clean = _localize_from_depth(depth, cam, light)
     assert clean.kind == "point"
-    assert np.linalg.norm(clean.point - light) < 0.005  # measured 1.5 mm
+    assert np.linalg.norm(clean.point - light) < 0.002  # measured 0.3 mm
     moves = []
     for seed in range(10):
         noisy = depth + np.random.default_rng(seed).normal(0, 0.01, depth.shape).astype(np.float32)
@@ -251,6 +224,11 @@ def test_plane_from_depth_rejects_bad_input(box_scene):
         sh.fit_plane_to_depth(depth, cam, _pixels(cam), inlier=0.0)
     with pytest.raises(ValueError, match="depth shape"):
         sh.fit_plane_to_depth(depth[:-1], cam, line)
+    face = _pixels_inside(cam, _TOP)
+    with pytest.raises(ValueError, match="one face and one shadow per edge"):
+        sh.localize_from_depth(depth, cam, [line, line], [face], [line])
+    with pytest.raises(ValueError, match="edge 0 has no shadow pixels"):
+        sh.localize_from_depth(depth, cam, [line], [face], [np.zeros((0, 2))])
 
 
 def test_depth_normals_face_the_camera_and_are_up_on_the_floor(box_scene):

@@ -11,6 +11,7 @@ from ._grid import EnvGrid as EnvGrid
 from ._grid import direction as direction
 from ._grid import direction_to_angles as direction_to_angles
 from ._setups import Setup as Setup
+from ._setups import box_on_floor as box_on_floor
 from ._setups import doorways as doorways
 from ._setups import ground_plane as ground_plane
 from ._setups import object_on_plane as object_on_plane

@@ -107,3 +107,30 @@ def doorways(
     camera = Camera.look_at([centre, 2.0, 2.4], [centre, 0.0, 0.3], [0.0, 1.0, 0.0], 90.0, width, height)
     edges = np.array([[[x0, 0.0, 0.0], [x0, wall_height, 0.0]] for x0, _ in doors])
     return Setup(scene, camera), edges
+
+
+def box_on_floor(size: float = 0.3, *, width: int = 160, height: int = 120) -> tuple[Setup, np.ndarray, np.ndarray]:
+    """A box of side `size` metres on a floor, seen from the front, above and slightly to the right.
+
+    For a point light above and behind the box on its right (`x > size/2`, `y > size`,
+    `z < -size/2`), three of the edges that outline its shadow are seen by the camera and cast
+    their shadows onto the visible floor: the top-left and top-front edges and the front-right
+    vertical one. No point lies on all three, so their shadow planes fix the light (eq. 4.9).
+
+    **Returns:** `(Setup(scene, camera), edges (3, 2, 3), faces (3, 4, 3))`: each edge's ends and
+    the corners of the visible face it bounds (the top face, the top face, the front face), from
+    which a depth map lifts the edge.
+    """
+    if size <= 0:
+        raise ValueError(f"size must be positive metres, got {size}")
+    h, lift = size / 2, 1e-4
+    box = trimesh.creation.box([size] * 3)
+    box.apply_translation([0.0, h + lift, 0.0])
+    scene = Scene([Surface(ground_plane(4.0 * size / 0.3), 0.8), Surface(box, 0.5, observe=False)])
+    s = size / 0.3  # the camera frames the box as it does the 0.3 m one
+    camera = Camera.look_at([0.2 * s, 1.6 * s, 1.4 * s], [0.0, 0.0, -0.1 * s], [0.0, 1.0, 0.0], 50.0, width, height)
+    y = size + lift
+    top = np.array([[-h, y, -h], [h, y, -h], [h, y, h], [-h, y, h]])
+    front = np.array([[-h, lift, h], [h, lift, h], [h, y, h], [-h, y, h]])
+    edges = np.array([[[-h, y, -h], [-h, y, h]], [[-h, y, h], [h, y, h]], [[h, lift, h], [h, y, h]]])
+    return Setup(scene, camera), edges, np.stack([top, top, front])

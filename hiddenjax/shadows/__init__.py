@@ -7,6 +7,7 @@ from ._depth import fit_edge as fit_edge
 from ._depth import fit_plane as fit_plane
 from ._depth import fit_plane_to_depth as fit_plane_to_depth
 from ._depth import lift_to_plane as lift_to_plane
+from ._depth import pixels_inside as pixels_inside
 from ._depth import sample_points as sample_points
 from ._edges import edge_angle as edge_angle
 from ._edges import edge_coordinates as edge_coordinates
@@ -15,8 +16,10 @@ from ._edges import edge_plane_normal as edge_plane_normal
 from ._edges import half_plane_direction as half_plane_direction
 from ._edges import plane_alpha as plane_alpha
 from ._edges import plane_angle as plane_angle
+from ._localize import DepthLocalization as DepthLocalization
 from ._localize import Localization as Localization
 from ._localize import intersect_planes as intersect_planes
+from ._localize import localize_from_depth as localize_from_depth
 from ._localize import localize_from_edges as localize_from_edges
 from ._localize import point_from_coordinates as point_from_coordinates
 from ._visibility import DEFAULT_TEMPERATURE as DEFAULT_TEMPERATURE

@@ -122,6 +122,30 @@ def fit_plane(points):
     return centre, np.linalg.svd(p - centre, full_matrices=False)[2][2]
 
 
+def pixels_inside(polygon, image_shape, margin: float = 0.5) -> np.ndarray:
+    """Pixel centres `(N, 2)` at least `margin` px inside a convex polygon given in pixels.
+
+    The face an edge bounds is easiest to annotate by its corners: `polygon (V, 2)` holds their
+    `(row, col)` (in order around the face, either direction); `image_shape` is `(H, W)`.
+    """
+    p = np.asarray(polygon, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 3 or not np.all(np.isfinite(p)):
+        raise ValueError(f"polygon must be (V >= 3, 2) finite (row, col) corners, got shape {p.shape}")
+    # Only the pixels of the polygon's bounding box, clipped to the image (memory ~ the face).
+    lo = np.clip(np.floor(p.min(axis=0)).astype(int), 0, image_shape)
+    hi = np.clip(np.ceil(p.max(axis=0)).astype(int) + 1, 0, image_shape)
+    rows, cols = np.meshgrid(np.arange(lo[0], hi[0]) + 0.5, np.arange(lo[1], hi[1]) + 0.5, indexing="ij")
+    px = np.stack([rows, cols], axis=-1).reshape(-1, 2)
+    edges = np.roll(p, -1, axis=0) - p
+    cross = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    if not (np.all(cross > 0) or np.all(cross < 0)):
+        raise ValueError("pixels_inside takes a convex polygon with its corners in order; split the face")
+    inward = np.stack([-edges[:, 1], edges[:, 0]], axis=-1) * np.sign(cross[0])
+    inward /= np.linalg.norm(inward, axis=-1, keepdims=True)
+    inside = np.einsum("pvc,vc->pv", px[:, None] - p[None], inward)
+    return px[np.all(inside >= margin, axis=1)]
+
+
 def fit_plane_to_depth(depth, camera: Camera, pixels, *, inlier: float | None = None, max_steps: int = 20):
     """`(centre (3,), unit normal (3,))` of the plane that best explains a z-buffer at `pixels`.
 

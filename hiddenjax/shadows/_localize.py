@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._depth import fit_edge, fit_plane_to_depth, lift_to_plane
 from ._edges import edge_plane_normal
 
 DEFAULT_RCOND = 1e-2
@@ -113,6 +114,67 @@ def localize_from_edges(edges, shadow_points, *, rcond: float = DEFAULT_RCOND) -
     n = n / off_line[:, None]
     b = np.sum(n * edges[:, 0], axis=-1)
     return intersect_planes(n, b, rcond=rcond, anchor=edges.reshape(-1, 3).mean(axis=0))
+
+
+@dataclass(frozen=True)
+class DepthLocalization:
+    """A light located from pixel annotations and a depth map (`localize_from_depth`).
+
+    **Fields:**
+    - `localization`: the `Localization` of eq. 4.9 (`.kind`, `.point`, ...).
+    - `edges (K, 2, 3)`: the occluding edges lifted onto their faces, metres.
+    - `shadow_points`: per edge, `(S_k, 3)` shadow points lifted onto the receiver.
+    - `faces`, `receiver`: the fitted planes `(centre, normal)` (one per edge; one receiver).
+    """
+
+    localization: Localization
+    edges: np.ndarray
+    shadow_points: list
+    faces: list
+    receiver: tuple
+
+
+def localize_from_depth(depth, camera, edge_pixels, face_pixels, shadow_pixels, *, receiver_pixels=None,
+                        inlier: float = 0.025, rcond: float = DEFAULT_RCOND) -> DepthLocalization:
+    """Locate a point light from edges and shadows annotated in the image and a depth map (ch. 4.2).
+
+    Each occluding edge is lifted onto the plane of the face it bounds (the depth jumps at the
+    edge itself, so its own pixels' depths are not used), each shadow pixel onto the receiver's
+    plane; every shadow point then gives a plane through its edge (eq. 4.5-4.9). The planes are
+    maximum-likelihood fits to the depth (`fit_plane_to_depth`).
+
+    **Arguments:**
+    - `depth (H, W)`: camera-space z per pixel, metres (`hj.depth_map`, or an RGB-D camera's).
+    - `edge_pixels`: per edge, `(M_k, 2)` `(row, col)` points along it (M_k >= 2).
+    - `face_pixels`: per edge, `(N_k, 2)` pixels inside the visible face that the edge bounds.
+    - `shadow_pixels`: per edge, `(S_k, 2)` pixels on the boundary of the shadow it casts.
+    - `receiver_pixels`: `(R, 2)` pixels of the one plane the shadows fall on; default every
+      pixel with a depth, fitted with trimming (`inlier` metres), which finds the dominant plane
+      (a floor that most of the image sees). For shadows on several surfaces, fit each with
+      `fit_plane_to_depth` and call `localize_from_edges` directly.
+
+    **Returns:** a `DepthLocalization`.
+    """
+    edge_pixels, face_pixels, shadow_pixels = list(edge_pixels), list(face_pixels), list(shadow_pixels)
+    if not (len(edge_pixels) == len(face_pixels) == len(shadow_pixels) >= 1):
+        raise ValueError(f"give one face and one shadow per edge: {len(edge_pixels)} edges, {len(face_pixels)} "
+                         f"faces and {len(shadow_pixels)} shadows")
+    if receiver_pixels is None:
+        z = np.asarray(depth)
+        rows, cols = np.nonzero(np.isfinite(z) & (z > 0))
+        receiver_pixels = np.stack([rows + 0.5, cols + 0.5], axis=-1)
+    receiver = fit_plane_to_depth(depth, camera, receiver_pixels, inlier=inlier)
+    edges, faces, shadows = [], [], []
+    for k, (epx, fpx, spx) in enumerate(zip(edge_pixels, face_pixels, shadow_pixels)):
+        spx = np.asarray(spx, dtype=np.float64).reshape(-1, 2)
+        if len(spx) == 0:
+            raise ValueError(f"edge {k} has no shadow pixels")
+        faces.append(fit_plane_to_depth(depth, camera, fpx))
+        edges.append(fit_edge(lift_to_plane(camera, epx, *faces[-1])))
+        shadows.append(lift_to_plane(camera, spx, *receiver))
+    counts = [len(q) for q in shadows]
+    loc = localize_from_edges(np.repeat(np.stack(edges), counts, axis=0), np.concatenate(shadows), rcond=rcond)
+    return DepthLocalization(loc, np.stack(edges), shadows, faces, receiver)
 
 
 def point_from_coordinates(thetas, edges, *, rcond: float = DEFAULT_RCOND) -> Localization:
