@@ -5,12 +5,21 @@ import pytest
 
 import hiddenjax as hj
 
-pytest.importorskip("mitsuba")
-from hiddenjax.transport._mitsuba import MitsubaRenderer  # noqa: E402
+from hiddenjax.transport._mitsuba import MIN_LLVM_MAJOR, MitsubaRenderer, llvm_major
+
+
+def test_llvm_versions_are_read_from_library_paths():
+    # Picking LLVM 15 over 19 by name would abort the process at the first render (see _mitsuba).
+    assert llvm_major("/usr/lib/x86_64-linux-gnu/libLLVM-14.0.6.so.1") == 14
+    assert llvm_major("/usr/lib/x86_64-linux-gnu/libLLVM-15.so") == 15
+    assert llvm_major("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1") == 19
+    assert llvm_major("/usr/lib/llvm-19/lib/libLLVM.so.1") == 19
+    assert llvm_major("/usr/lib/x86_64-linux-gnu/libLLVM.so") == 0 < MIN_LLVM_MAJOR
 
 
 @pytest.fixture(scope="module")
 def pair():
+    pytest.importorskip("mitsuba")
     setup = hj.scenes.object_on_plane("teapot", width=64, height=64)
     grid = hj.EnvGrid(16, 32)
     T = hj.transport_matrix(setup.scene, setup.camera, grid, samples=32, pixel_samples=4, progress=False)

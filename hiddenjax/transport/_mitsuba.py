@@ -2,11 +2,13 @@
 
 Used to cross-check `render(T, x)` and to time the user's alternative (one render per column of
 `A`). Mitsuba is not a dependency: `pip install mitsuba`; its fast LLVM variant needs a
-`libLLVM.so` (Debian: `libllvm19`), found automatically or through `DRJIT_LIBLLVM_PATH`.
+`libLLVM.so` of version 19 or newer (Debian: `libllvm19`), found automatically or through
+`DRJIT_LIBLLVM_PATH`; without one the scalar variant is used.
 """
 
 import glob
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -15,15 +17,40 @@ import numpy as np
 from ..scene import Camera, EnvGrid, Scene
 
 
+# Dr.Jit's LLVM backend aborts the whole process (an LLVM fatal error, not an exception) when the
+# library it loads cannot compile its kernels: with drjit 1.5, LLVM 15 and 16 stop at
+# "Cannot select: fminimum"; LLVM 19 works (17 and 18 untested).
+MIN_LLVM_MAJOR = 19
+
+
+def llvm_major(path) -> int:
+    """Major version of a `libLLVM` shared library from its path (`libLLVM-15.so.1`,
+    `libLLVM.so.19.1`, `/usr/lib/llvm-19/lib/libLLVM.so.1`); 0 when the path names none."""
+    found = re.findall(r"(?:libLLVM-|libLLVM\.so\.|llvm-)(\d+)", str(path))
+    return max((int(v) for v in found), default=0)
+
+
+def find_llvm() -> str | None:
+    """The newest system `libLLVM` of major version >= `MIN_LLVM_MAJOR`, or None."""
+    found = glob.glob("/usr/lib/*/libLLVM*.so*") + glob.glob("/usr/lib/llvm-*/lib/libLLVM*.so*")
+    usable = [(llvm_major(path), path) for path in found if llvm_major(path) >= MIN_LLVM_MAJOR]
+    return max(usable)[1] if usable else None
+
+
 def mitsuba_variant() -> str:
-    """Select and return Mitsuba's variant: `llvm_ad_rgb` when LLVM is found, else `scalar_rgb`."""
-    if not os.environ.get("DRJIT_LIBLLVM_PATH"):
-        found = sorted(glob.glob("/usr/lib/*/libLLVM*.so*") + glob.glob("/usr/lib/llvm-*/lib/libLLVM*.so*"))
-        if found:
-            os.environ["DRJIT_LIBLLVM_PATH"] = found[-1]
+    """Select and return Mitsuba's variant: `llvm_ad_rgb` with a usable LLVM, else `scalar_rgb`.
+
+    The automatic search takes the newest `libLLVM` of major version >= `MIN_LLVM_MAJOR`; an older
+    one would abort the process at the first render, so without a new one the scalar variant is
+    used. A `DRJIT_LIBLLVM_PATH` set by the caller is used as given.
+    """
+    use_llvm = bool(os.environ.get("DRJIT_LIBLLVM_PATH"))
+    if not use_llvm and (path := find_llvm()) is not None:
+        os.environ["DRJIT_LIBLLVM_PATH"] = path
+        use_llvm = True
     import mitsuba as mi
 
-    for variant in ("llvm_ad_rgb", "scalar_rgb"):
+    for variant in (["llvm_ad_rgb"] if use_llvm else []) + ["scalar_rgb"]:
         try:
             mi.set_variant(variant)
             return variant
