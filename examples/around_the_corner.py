@@ -12,7 +12,7 @@ Writes `around_the_corner.png` (input, heat map on the floor with the fitted Gau
 refinement, saliency), `loss_curves.png`, `metrics.md` and `results.json`. Datasets and network
 checkpoints are cached in `--out`, so a second run (or an interrupted one) resumes.
 
-    python examples/around_the_corner.py [--quick] [--out DIR] [--kinds L T table] [--count N] [--steps N]
+    python examples/around_the_corner.py [--quick] [--out DIR] [--kinds L T table] [--count N] [--steps N] [--size S]
 """
 
 import argparse
@@ -43,11 +43,14 @@ def main(argv=None):
     parser.add_argument("--kinds", nargs="+", default=list(hc.SCENE_CLASSES), choices=hc.SCENE_CLASSES)
     parser.add_argument("--count", type=int, default=None, help="rendered scenes per class (default 16000)")
     parser.add_argument("--steps", type=int, default=None, help="training steps per class (default 3000)")
+    parser.add_argument("--size", type=int, default=None, choices=(64, 128),
+                        help="image side (default 128, averaged 2x2 by the network; 64 renders about twice the scenes per second)")
     parser.add_argument("--workers", type=int, default=None, help="rendering processes (default: all cores)")
     parser.add_argument("--test-scenes", type=int, default=None, help="new scenes refined per class (default 4)")
     args = parser.parse_args(argv)
     quick = args.quick
-    size = 32 if quick else 128
+    size = 32 if quick else (args.size or 128)
+    pool = 2 if size >= 128 else 1
     count = args.count or (96 if quick else 16000)
     config = hc.TrainConfig(steps=args.steps or (20 if quick else 3000), batch=32 if quick else 64,
                             checkpoint_every=10 if quick else 250)
@@ -55,7 +58,7 @@ def main(argv=None):
     refine_steps, refine_samples = (3, 8) if quick else (30, 32)
     args.out.mkdir(parents=True, exist_ok=True)
 
-    results = dict(config=dict(size=size, count=count, train=config.__dict__, render_samples=RENDER_SAMPLES, pool=2,
+    results = dict(config=dict(size=size, count=count, train=config.__dict__, render_samples=RENDER_SAMPLES, pool=pool,
                                refine_steps=refine_steps, refine_samples=refine_samples,
                                perturbation_m=PERTURBATION), classes={})
     logs, examples = {}, []
@@ -65,7 +68,7 @@ def main(argv=None):
                                    cache=args.out / f"data_{kind}_{size}_{count}.npz")
         t_data = time.perf_counter() - t0
         train, val = data.split(0.1)
-        model = hc.CornerNet(jax.random.key(0), size=size, pool=1 if quick else 2, channels=(16, 32, 32), hidden=128)
+        model = hc.CornerNet(jax.random.key(0), size=size, pool=pool, channels=(16, 32, 32), hidden=128)
         t0 = time.perf_counter()
         model, log = hc.train(model, train.images, train.positions, config, validation=(val.images, val.positions),
                               checkpoint=args.out / f"cnn_{kind}_{size}.eqx")
