@@ -40,6 +40,9 @@ def test_contact_sheet(tmp_path):
         tmp_path / "s.png", [("a", img), ("b", img[..., 0], "map"), ("c", img[..., 0] - 0.5, "signed")], height=32
     )
     assert sheet.dtype == np.uint8 and sheet.shape[0] > 32 and (tmp_path / "s.png").exists()
+    two = hj.io.contact_sheet(tmp_path / "t.png", [("a\nsecond line", img), ("b", img)], height=32)
+    assert two.shape[0] == sheet.shape[0] + 18  # one more line of title, for every panel of the row
+    assert (two[24:42, :40] < 128).any()  # the second line is drawn, above the image
 
 
 def test_bad_input_leaves_no_partial_file(tmp_path):

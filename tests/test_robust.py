@@ -228,3 +228,25 @@ def test_refit_step_is_the_joint_gauss_newton_step(problem):
     with pytest.raises(ValueError, match="model's rows"):
         hj.solvers.gauss_newton_step(model, theta, env, image, unc, operator=hj.solvers.IlluminationOperator.build(
             hj.transport_matrix(setup.scene, setup.camera, grid, samples=4, progress=False)))
+
+
+def test_scene_solve_shares_the_pose_across_lightings_and_never_increases_the_objective(problem):
+    """Several lightings: one map each, one pose; backtracking keeps every accepted step downhill."""
+    setup, grid, model, sky, _ = problem
+    unc = SceneUncertainty.of(translation=[2 * MM, 0.0, 2 * MM], rotation=[0.0, 2 * DEG, 0.0])
+    true = SceneParams.of(translation=[1.5 * MM, 0.0, -1.0 * MM], rotation=[0.0, 1.5 * DEG, 0.0])
+    scene, camera = model.perturb(setup.scene, setup.camera, true)
+    other = np.roll(sky, sky.shape[1] // 3, axis=1)  # the same sky turned by 120 degrees
+    images = [hj.reference_render(scene, camera, s, samples=64, pixel_samples=8, seed=1) for s in (sky, other)]
+    embree = lambda th: _embree(setup, grid, model, th)  # 4 footprint samples
+    fit = hj.solvers.solve_scene_illumination(model, images, unc, steps=3, transport=embree, progress=False)
+    assert fit.env.shape == (2, *grid.shape, 3)
+    separate = [hj.solve_illumination(embree(fit.theta), im).env for im in images]
+    assert relrmse(fit.env, jnp.stack(separate)) < 1e-4  # the stacked solve un-stacks to one map per lighting
+    accepted = np.asarray(fit.rate_history) > 0
+    objective = np.asarray(fit.objective_history)
+    assert accepted[0] and np.all(np.diff(objective)[accepted] < 0), objective
+    error = lambda th: float(np.linalg.norm(unc.whiten(th, true)))  # in standard deviations
+    assert error(fit.theta) < 0.8 * error(SceneParams.zeros()), (error(fit.theta), str(fit.theta), str(true))
+    with pytest.raises(ValueError, match="one shape"):
+        hj.solvers.solve_scene_illumination(model, [images[0], images[1][:8]], unc, progress=False)

@@ -46,17 +46,20 @@ def contact_sheet(path, panels, height: int = 256, columns: int | None = None) -
     `panels` is a sequence of `(title, image)` or `(title, image, kind)` or
     `(title, image, kind, white)`; every panel is resized (nearest neighbour, so pixels stay
     visible) to `height` rows and the sheet has `columns` panels per row (default: all).
+    A title may have several lines (`"\n"`); every title bar is as tall as the tallest.
     """
     if not panels:
         raise ValueError("contact_sheet needs at least one panel")
+    lines = max(len(str(spec[0]).split("\n")) for spec in panels)
     tiles = []
     for spec in panels:
         title, image, *rest = spec
         rgb = panel(image, *rest)
         width = max(1, round(rgb.shape[1] * height / rgb.shape[0]))
         rgb = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_NEAREST)
-        bar = np.full((24, width, 3), 255, np.uint8)
-        cv2.putText(bar, str(title), (4, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        bar = np.full((6 + 18 * lines, width, 3), 255, np.uint8)
+        for k, line in enumerate(str(title).split("\n")):
+            cv2.putText(bar, line, (4, 17 + 18 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
         tiles.append(np.concatenate([bar, rgb], axis=0))
     columns = columns or len(tiles)
     rows = []

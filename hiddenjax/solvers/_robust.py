@@ -43,7 +43,6 @@ from ._illumination import (
     IlluminationOperator,
     _check_image,
     gram_matrix,
-    solve_illumination,
     transpose_times,
 )
 from ._scene_model import SceneModel
@@ -194,62 +193,113 @@ def _refit(B, A, x, J):
 class SceneSolution(eqx.Module):
     """Result of `solve_scene_illumination`.
 
-    **Fields:** `env` the final map (solved at the final `theta`); `theta` the final parameters;
-    `theta_history` the parameters before each step and at the end (stacked `SceneParams`,
-    `steps + 1` entries); `objective_history` eq. 5.3 at each step's parameters;
-    `residual_history` `||y - A x||^2`; `step_history` `|du|` (whitened); `steps` taken.
+    **Fields:** `env` the final map(s) (solved at the final `theta`; `(K, h, w[, C])` for `K`
+    lightings); `theta` the final parameters; `theta_history` the parameters before each step and
+    at the end (stacked `SceneParams`, `steps + 1` entries); `objective_history` the MAP objective
+    `(||y - A x||^2 + x^T R x) / s^2 + ||u||^2` at each of those parameters (`s` fixed at its
+    first value, so the entries compare); `residual_history` `||y - A x||^2`; `step_history`
+    `|du|` (whitened, before the learning rate); `rate_history` the learning rate each step
+    took after backtracking (0: no step decreased the objective, and the loop stopped); `steps`.
     """
 
-    env: Float[Array, "h w *C"]
+    env: Float[Array, "..."]
     theta: SceneParams
     theta_history: SceneParams
     objective_history: Float[Array, " k"]
     residual_history: Float[Array, " k"]
     step_history: Float[Array, " k"]
+    rate_history: Float[Array, " k"]
     steps: Int[Array, ""]
 
 
 def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncertainty,
-                             theta: SceneParams | None = None, *, steps: int = 10, learning_rate=0.5,
+                             theta: SceneParams | None = None, *, steps: int = 10, learning_rate=1.0,
                              transport: Callable[[SceneParams], TransportMatrix] | None = None,
                              mean: SceneParams | None = None, noise=None, smooth=DEFAULT_SMOOTH,
-                             ridge=DEFAULT_RIDGE, tol: float = 0.02, refit: bool = True,
+                             ridge=DEFAULT_RIDGE, tol: float = 0.02, refit: bool = True, backtrack: int = 3,
                              progress: bool = True) -> SceneSolution:
     """Alternate the exact illumination solve (eq. 5.3) and Gauss-Newton steps on `theta` (eq. A.10).
 
-    **Arguments:** `theta` the starting parameters (default `mean`, itself default zeros);
+    **Arguments:** `image (H, W[, C])` one photo, or `(K, H, W, C)` (or a list of `(H, W[, C])`)
+    `K` photos of the same scene under different lightings: one map each, one shared `theta`
+    (thesis appendix A: "variation in the environment map would better stabilize the estimate of
+    theta"); `theta` the starting parameters (default `mean`, itself default zeros);
     `transport(theta)` the matrix for the illumination solve (default the soft `model.transport`;
     an Embree build of `model.perturb(...)` with `mask=model.mask` is more accurate), the
-    derivatives always come from the soft model; `learning_rate` scales each step (the thesis
-    suggests `<< 1`); stops after `steps` or once the whitened step is shorter than `tol`
-    standard deviations. `refit=True` (default) takes the variable-projection step, which lets
-    the map re-fit (`gauss_newton_step(..., operator=...)`); `False` holds it fixed as eq. A.10
-    does. Each step costs one `transport` and one linearization with `n` forward derivatives (the
-    free parameters). Pose recovery to the issue's target is not yet demonstrated (README).
+    derivatives always come from the soft model; `learning_rate` scales each step, which is
+    then halved up to `backtrack` times until the MAP objective (see `SceneSolution`) decreases;
+    if none does, the loop stops. It also stops after `steps`, or once the whitened step is
+    shorter than `tol` standard deviations. `refit=True` (default) takes the
+    variable-projection step, which lets the map re-fit (`gauss_newton_step(..., operator=...)`);
+    `False` holds it fixed as eq. A.10 does. Each step costs one linearization with `n` forward
+    derivatives of the soft model (the free parameters) and one `transport` per tried rate.
     """
+    y, unstack = _lightings(image)
     mean = SceneParams.zeros() if mean is None else mean
     theta = mean if theta is None else theta
     build = model.transport if transport is None else transport
     step_fn = eqx.filter_jit(gauss_newton_step)
-    thetas, objectives, residuals, lengths = [], [], [], []
+    basis = uncertainty.basis()
+
+    def fit(th):  # the solve at th: (operator, solution, A x, ||y - A x||^2, data + regularizer)
+        op = IlluminationOperator.build(build(th), smooth, ridge)
+        sol = op.solve(y)
+        x = sol.env.reshape((op.B.shape[0],) + sol.env.shape[2:])
+        Ax = jnp.einsum("pn,n...->p...", op.views[0].A, x)
+        r = op.views[0].image_to_rows(y) - Ax
+        return op, sol, Ax, jnp.sum(r * r), jnp.sum(sol.objective)
+
+    def value(total, th, s2):
+        u = uncertainty.whiten(th, mean)
+        return float(total / s2 + u @ u)
+
+    op, sol, Ax, res, total = fit(theta)
+    s2 = None if noise is None else float(noise) ** 2
+    thetas, objectives, residuals, lengths, rates = [], [], [], [], []
     bar = tqdm(range(steps), desc="Gauss-Newton", disable=not progress)
     for _ in bar:
-        op = IlluminationOperator.build(build(theta), smooth, ridge)
-        solution = op.solve(image)
-        x = solution.env.reshape((op.B.shape[0],) + solution.env.shape[2:])
-        out = step_fn(model, theta, solution.env, image, uncertainty, mean=mean, noise=noise,
-                      learning_rate=learning_rate, rendered=jnp.einsum("pn,n...->p...", op.views[0].A, x),
-                      operator=op if refit else None)
+        out = step_fn(model, theta, sol.env, y, uncertainty, mean=mean, noise=noise, learning_rate=0.0,
+                      rendered=Ax, operator=op if refit else None)
+        s2 = float(out.noise) ** 2 if s2 is None else s2  # fixed from the first step: objectives compare
+        f = value(total, theta, s2)
         thetas.append(theta)
-        objectives.append(jnp.sum(solution.objective))
-        residuals.append(out.residual)
-        lengths.append(jnp.linalg.norm(out.step))
-        theta = out.theta
-        bar.set_postfix(residual=f"{float(out.residual):.3g}", step=f"{float(lengths[-1]):.3f}")
-        if float(lengths[-1]) * learning_rate < tol:
+        objectives.append(f)
+        residuals.append(float(res))
+        lengths.append(float(jnp.linalg.norm(out.step)))
+        rate = float(learning_rate)
+        for _ in range(backtrack + 1):
+            trial = SceneParams.from_flat(theta.flat() + rate * out.step @ basis.astype(out.step.dtype))
+            found = fit(trial)
+            if value(found[4], trial, s2) < f:
+                break
+            rate /= 2
+        else:
+            rates.append(0.0)
+            break
+        rates.append(rate)
+        theta, (op, sol, Ax, res, total) = trial, found
+        bar.set_postfix(objective=f"{f:.4g}", step=f"{lengths[-1]:.3f}", rate=rate)
+        if lengths[-1] * rate < tol:
             break
     thetas.append(theta)
-    env = solve_illumination(build(theta), image, smooth, ridge).env
+    objectives.append(value(total, theta, s2 if s2 is not None else float(res) / y.size))
+    residuals.append(float(res))
     stack = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *thetas)
-    return SceneSolution(env, theta, stack, jnp.stack(objectives), jnp.stack(residuals), jnp.stack(lengths),
-                         jnp.array(len(lengths)))
+    return SceneSolution(unstack(sol.env), theta, stack, jnp.asarray(objectives), jnp.asarray(residuals),
+                         jnp.asarray(lengths), jnp.asarray(rates), jnp.array(len(lengths)))
+
+
+def _lightings(image):
+    """Photos under `K` lightings as one image with `K * C` channels, and the inverse for the maps."""
+    stacked = isinstance(image, (list, tuple)) or np.ndim(image) == 4
+    if not stacked:
+        return jnp.asarray(image), lambda env: env
+    images = [jnp.asarray(im) for im in image]
+    if not images or any(im.shape != images[0].shape or im.ndim not in (2, 3) for im in images):
+        raise ValueError(f"several lightings must be (H, W[, C]) photos of one shape, got "
+                         f"{[tuple(im.shape) for im in images]}")
+    grey = images[0].ndim == 2
+    y = jnp.concatenate([im[..., None] if grey else im for im in images], axis=-1)
+    K, C = len(images), 1 if grey else images[0].shape[-1]
+    split = lambda env: jnp.moveaxis(env.reshape(env.shape[:2] + (K, C)), 2, 0)
+    return y, (lambda env: split(env)[..., 0]) if grey else split
