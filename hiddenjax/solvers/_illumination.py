@@ -227,13 +227,21 @@ class IlluminationOperator(eqx.Module):
         if any(s.ndim not in (3, 4) for s in stacks) or len({s.shape[0] for s in stacks}) != 1:
             raise ValueError(f"images must be (M, H, W) or (M, H, W, C) stacks of one length M, got shapes "
                              f"{[s.shape for s in stacks]}")
-        M, channels = stacks[0].shape[0], stacks[0].shape[3:]
-        columns = [jnp.moveaxis(s, 0, -1).reshape(s.shape[1:3] + (-1,)) for s in stacks]  # (H, W, C * M)
-        sol = self.solve(columns[0] if len(self.views) == 1 else columns, nonneg, solver, throw)
-        unstack = lambda a, lead: jnp.moveaxis(a.reshape(a.shape[:lead] + channels + (M,)), -1, 0)
+        columns, unstacks = zip(*(_as_columns(s) for s in stacks))
+        sol = self.solve(columns[0] if len(self.views) == 1 else list(columns), nonneg, solver, throw)
+        unstack = unstacks[0]
         return eqx.tree_at(lambda s: (s.env, s.objective, s.kkt_residual, s.steps, s.result), sol,
                            (unstack(sol.env, 2), *(unstack(a, 0) for a in (sol.objective, sol.kkt_residual,
                                                                          sol.steps, sol.result))))
+
+
+def _as_columns(stack):
+    """A stack `(M, H, W[, C])` as one image `(H, W, C * M)`, each channel a column of one problem,
+    and `unstack(a, lead)`, which gives an array whose axes after the first `lead` are those
+    columns its leading `M` axis back (`(h, w, C * M) -> (M, h, w[, C])` for `lead=2`)."""
+    M, channels = stack.shape[0], stack.shape[3:]
+    columns = jnp.moveaxis(stack, 0, -1).reshape(stack.shape[1:3] + (-1,))
+    return columns, lambda a, lead: jnp.moveaxis(a.reshape(a.shape[:lead] + channels + (M,)), -1, 0)
 
 
 def solve_illumination(

@@ -42,6 +42,7 @@ from ._illumination import (
     DEFAULT_SMOOTH,
     IlluminationOperator,
     _check_image,
+    _as_columns,
     gram_matrix,
     transpose_times,
 )
@@ -298,8 +299,5 @@ def _lightings(image):
     if not images or any(im.shape != images[0].shape or im.ndim not in (2, 3) for im in images):
         raise ValueError(f"several lightings must be (H, W[, C]) photos of one shape, got "
                          f"{[tuple(im.shape) for im in images]}")
-    grey = images[0].ndim == 2
-    y = jnp.concatenate([im[..., None] if grey else im for im in images], axis=-1)
-    K, C = len(images), 1 if grey else images[0].shape[-1]
-    split = lambda env: jnp.moveaxis(env.reshape(env.shape[:2] + (K, C)), 2, 0)
-    return y, (lambda env: split(env)[..., 0]) if grey else split
+    y, unstack = _as_columns(jnp.stack(images))
+    return y, lambda env: unstack(env, 2)
