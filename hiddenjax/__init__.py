@@ -1,7 +1,18 @@
 """hiddenjax: find and use hidden cues (shadows, subtle changes) in ordinary photographs.
 
 Everything public is re-exported here; implementation modules are private.
+
+Precision: on GPUs JAX computes float32 matrix products in TensorFloat32 by default (10-bit
+mantissa), which moves camera projections by hundredths of a pixel and breaks the normal
+equations of the solvers. Importing hiddenjax therefore sets `jax_default_matmul_precision` to
+"float32" unless it was already chosen (by `JAX_DEFAULT_MATMUL_PRECISION` or `jax.config`);
+code that wants TF32 back for its own work can use `with jax.default_matmul_precision("tensorfloat32")`.
 """
+
+import jax as _jax
+
+if _jax.config.jax_default_matmul_precision is None:
+    _jax.config.update("jax_default_matmul_precision", "float32")
 
 from . import solvers as solvers  # first: solvers and shadows import each other's modules
 from . import corners as corners

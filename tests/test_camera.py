@@ -1,5 +1,10 @@
+import os
+import subprocess
+import sys
+
 import cv2
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -107,3 +112,12 @@ def test_primary_rays_pass_through_their_pixels():
     rc = np.asarray(rc)
     for k, idx in ((0, rows), (1, cols)):  # inside [i, i+1) up to float32 round-off
         assert np.all(rc[..., k] > idx[..., None] - 1e-3) and np.all(rc[..., k] < idx[..., None] + 1 + 1e-3)
+
+
+def test_importing_hiddenjax_asks_for_full_float32_matmuls():
+    """On GPUs JAX's default float32 matmul is TF32 (10-bit mantissa): it moved projections by 0.02 px."""
+    assert "HIGHEST" in str(jax.make_jaxpr(lambda a: a @ a)(jnp.ones((2, 2), jnp.float32)))
+    code = "import jax, hiddenjax; print(jax.config.jax_default_matmul_precision)"
+    env = dict(os.environ, JAX_DEFAULT_MATMUL_PRECISION="tensorfloat32")  # a user's own choice is kept
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "tensorfloat32"

@@ -104,13 +104,15 @@ def test_usage_errors_exit_2_with_help_hint(built):
 
 
 def test_inprocess_errors(built, capsys):
-    assert main(["solve", str(built / "A.npz"), str(built / "image.exr"), "-o", str(built / "x.jpg")]) == 1
+    hj.io.write_exr(built / "small.exr", np.ones((2, 3), np.float32))  # independent of the other tests' files
+    hj.io.write_exr(built / "ones.exr", np.ones((10, 12, 3), np.float32))
+    assert main(["solve", str(built / "A.npz"), str(built / "ones.exr"), "-o", str(built / "x.jpg")]) == 1
     assert "use one of the suffixes .exr, .hdr" in capsys.readouterr().err
-    assert main(["solve", str(built / "A.npz"), str(built / "image.exr"), "-o", str(built / "no" / "x.exr")]) == 1
+    assert main(["solve", str(built / "A.npz"), str(built / "ones.exr"), "-o", str(built / "no" / "x.exr")]) == 1
     assert "does not exist" in capsys.readouterr().err
     assert main(["render", str(built / "A.npz"), str(built / "small.exr"), "-o", str(built / "x.exr")]) == 1
     assert "neither the matrix's 8x4 grid nor a lat-long panorama" in capsys.readouterr().err
-    assert main(["solve", str(built / "A.npz"), str(built / "image.exr"), "-o", str(built / "x.hdr"), "--signed"]) == 1
+    assert main(["solve", str(built / "A.npz"), str(built / "ones.exr"), "-o", str(built / "x.hdr"), "--signed"]) == 1
     assert "signed" in capsys.readouterr().err
     assert not any(built.glob("x.*"))
 

@@ -301,17 +301,25 @@ def test_soft_visibility_converges_to_embree_away_from_shadow_edges(teapot_point
 
 
 def test_culled_visibility_matches_dense_in_value_and_gradient(teapot_points):
+    """The culled float32 sum against the dense sum in float64 (the reference: the dense float32 sum
+    of all 4096 triangles' terms drifts, its gradient by 0.08% on CPU and 0.6% on an H100 at T = 1000,
+    while the culled one stays within 7e-5 on both)."""
     (scene, _), shadows = teapot_points
     tri = jnp.asarray(scene[1].triangles, jnp.float32)
     occ = sh.Occluder.from_triangles(tri)
     rec = sh.Receivers.from_points(shadows.points)
-    light = jnp.asarray([0.35, 0.5, 0.25], jnp.float32)
+    light = np.array([0.35, 0.5, 0.25])
     for T in (100.0, 1000.0):
-        dense = jax.value_and_grad(lambda l: jnp.sum(sh.soft_visibility(shadows.points, tri, l, T)))
-        culled = jax.value_and_grad(lambda l: jnp.sum(jnp.exp(rec.scatter(sh.culled_log_visibility(rec, occ, l, T)))))
-        (v0, g0), (v1, g1) = dense(light), jax.jit(culled)(light)
+        culled = lambda l, o: jnp.sum(jnp.exp(rec.scatter(sh.culled_log_visibility(rec, o, l, T))))
+        v1, g1 = jax.jit(jax.value_and_grad(culled))(jnp.asarray(light, jnp.float32), occ)
+        with jax.enable_x64():
+            tri64 = jnp.asarray(scene[1].triangles, jnp.float64)
+            dense = lambda l: jnp.sum(sh.soft_visibility(jnp.asarray(shadows.points, jnp.float64), tri64, l, T))
+            v0, g0 = jax.value_and_grad(dense)(jnp.asarray(light, jnp.float64))
+            v64 = culled(jnp.asarray(light, jnp.float64), sh.Occluder.from_triangles(tri64))  # float64 occluders run too
         np.testing.assert_allclose(v1, v0, rtol=1e-5)
-        np.testing.assert_allclose(g1, g0, rtol=2e-3, atol=1e-3 * float(jnp.abs(g0).max()))
+        np.testing.assert_allclose(v64, v0, rtol=1e-5)
+        np.testing.assert_allclose(g1, g0, rtol=5e-4)
 
 
 def test_soft_visibility_gradients_match_finite_differences():

@@ -357,7 +357,7 @@ def culled_log_visibility(
         tri = occluder.triangles[c]  # (G, K, 3, 3)
         lv = jax.vmap(lambda p, f: triangle_log_visibility(p, f, light, temperature))(pts, tri)  # (G, B, K)
         keep = mask[:, None] & (receivers.surface[t] != own_surface[c][:, None])
-        return jnp.where(keep, lv.sum(axis=-1), 0.0), t
+        return jnp.where(keep, lv.sum(axis=-1), 0.0).astype(receivers.points.dtype), t  # float64 triangles too
 
     @jax.checkpoint
     def body(acc, xs):
