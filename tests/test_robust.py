@@ -250,3 +250,60 @@ def test_scene_solve_shares_the_pose_across_lightings_and_never_increases_the_ob
     assert error(fit.theta) < 0.8 * error(SceneParams.zeros()), (error(fit.theta), str(fit.theta), str(true))
     with pytest.raises(ValueError, match="one shape"):
         hj.solvers.solve_scene_illumination(model, [images[0], images[1][:8]], unc, progress=False)
+
+
+def test_transport_jacobian_is_the_whitened_derivative_of_the_builder(problem):
+    """Central differences of a builder give `T_x` in the JVP layout: rows (pixel, channel), sigma-long columns."""
+    setup, grid, model, sky, _ = problem
+    unc = SceneUncertainty.of(translation=[2 * MM, 0.0, 2 * MM], rotation=[0.0, 2 * DEG, 0.0])
+    theta = SceneParams.of(translation=[0.3 * MM, 0.0, 0.2 * MM])
+    x = jnp.asarray(grid.downsample(sky)).reshape(grid.size, 3)  # RGB
+    Ax, J = jax.jit(lambda th: model.jacobian(th, x, unc))(theta)
+    fd = hj.solvers.transport_jacobian(eqx.filter_jit(lambda th: model.transport(th)), theta, x, unc, step=0.05)
+    assert fd.shape == J.shape == (Ax.size, 3)
+    assert relrmse(fd, J) < 0.02, relrmse(fd, J)
+    step = eqx.filter_jit(hj.solvers.gauss_newton_step)
+    y = np.zeros(model.mask.shape + (3,), np.float32)
+    y[np.asarray(model.mask)] = 1.05 * np.asarray(Ax)
+    env = x.reshape(*grid.shape, 3)
+    own = step(model, theta, env, y, unc, noise=0.01)
+    given = step(model, theta, env, y, unc, noise=0.01, jacobian=J, rendered=Ax)
+    assert relrmse(given.step, own.step) < 1e-5
+    with pytest.raises(ValueError, match="rendered"):
+        hj.solvers.gauss_newton_step(model, theta, env, y, unc, jacobian=J)
+    with pytest.raises(ValueError, match="step"):
+        hj.solvers.transport_jacobian(model.transport, theta, x, unc, step=0.0)
+
+
+def test_scene_solve_with_embree_differences_recovers_the_pose():
+    """Gauss-Newton with `T_x` from differences of Embree matrices finds a 3 mm / 3 deg pose error.
+
+    The example's fixture (32x32 px, 8x16 grid, margin 2), 4 lightings whose skies are constant on
+    the grid cells (so the 8x16 matrices are exact up to sampling), photos from the reference
+    renderer (128 directions x 32 footprint samples), Embree matrices 64 x 16, weights x0.001.
+    Measured: 3.00 mm / 3.00 deg -> 0.25 mm / 0.25 deg in two steps (whitened 1.41 -> 0.12); the
+    soft model's derivative from this start took 6 steps to reach 0.83 mm / 1.83 deg.
+    """
+    setup = hj.scenes.object_on_plane("teapot", width=32, height=32)
+    grid = hj.EnvGrid(8, 16)
+    model = SceneModel.from_scene(setup.scene, setup.camera, grid, margin=2)
+    mask = np.asarray(model.mask)
+    rng = np.random.default_rng(3)
+    skies = [hj.scenes.procedural_sky(256, 512, seed=k, sun=(0.9, 2.0) if k == 0 else
+                                      (rng.uniform(0.5, 1.2), rng.uniform(0, 2 * np.pi))) for k in range(4)]
+    skies = [np.repeat(np.repeat(grid.downsample(s), 32, 0), 32, 1) for s in skies]
+    unc = SceneUncertainty.of(translation=[3 * MM, 0.0, 3 * MM], rotation=[0.0, 3 * DEG, 0.0])
+    true = SceneParams.of(translation=[-2.78 * MM, 0.0, -1.13 * MM], rotation=[0.0, 3 * DEG, 0.0])
+    scene, camera = model.perturb(setup.scene, setup.camera, true)
+    images = [hj.reference_render(scene, camera, s, samples=128, pixel_samples=32, seed=1) for s in skies]
+
+    def embree(th):
+        return hj.transport_matrix(*model.perturb(setup.scene, setup.camera, th), grid, samples=64, pixel_samples=16,
+                                   mask=mask, seed=0, progress=False)
+
+    fit = hj.solvers.solve_scene_illumination(model, images, unc, steps=4, transport=embree, difference=0.5,
+                                              smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,
+                                              ridge=1e-3 * hj.solvers.DEFAULT_RIDGE, tol=0.05, progress=False)
+    error = lambda th: float(np.linalg.norm(unc.whiten(th, true)))  # in standard deviations
+    assert error(SceneParams.zeros()) > 1.4
+    assert error(fit.theta) < 0.3, (error(fit.theta), str(fit.theta), str(true))

@@ -27,6 +27,7 @@ from ._robust import jacobian_gram as jacobian_gram
 from ._robust import model_average as model_average
 from ._robust import solve_scene_illumination as solve_scene_illumination
 from ._robust import taylor_operator as taylor_operator
+from ._robust import transport_jacobian as transport_jacobian
 from ._variational import GaussianParams as GaussianParams
 from ._variational import VariationalOptimizer as VariationalOptimizer
 from ._variational import VariationalSolution as VariationalSolution

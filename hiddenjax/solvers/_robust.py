@@ -139,7 +139,7 @@ class GaussNewtonStep(eqx.Module):
 
 def gauss_newton_step(model: SceneModel, theta: SceneParams, env, image, uncertainty: SceneUncertainty, *,
                       mean: SceneParams | None = None, noise=None, learning_rate=1.0, rendered=None,
-                      operator: IlluminationOperator | None = None) -> GaussNewtonStep:
+                      operator: IlluminationOperator | None = None, jacobian=None) -> GaussNewtonStep:
     """The Gauss-Newton update of the scene parameters (eq. A.10).
 
     **Arguments:** `env (h, w[, C])` the current map; `image (H, W[, C])`; `mean` the believed
@@ -153,12 +153,20 @@ def gauss_newton_step(model: SceneModel, theta: SceneParams, env, image, uncerta
     change of the map explains. That is the exact Gauss-Newton step of the joint problem in
     `(theta, x_F)` at a solved `x` (test); held fixed, the map has already absorbed most of a pose
     error and the steps are too short or wrong.
+    `jacobian (P*C, n)`: a whitened `T_x` computed elsewhere (e.g. `transport_jacobian`, central
+    differences of Embree matrices) in place of the soft model's JVPs; then `rendered` or
+    `operator` must give `A x`.
     Pure JAX: jit it (with `eqx.filter_jit`) and vmap it over a batch of images and maps.
     """
     mean = SceneParams.zeros() if mean is None else mean
     x = jnp.asarray(env).reshape((model.grid.size,) + jnp.shape(env)[2:])
     y = _check_image(model, image)
-    Ax, J = model.jacobian(theta, x, uncertainty)
+    if jacobian is None:
+        Ax, J = model.jacobian(theta, x, uncertainty)
+    elif rendered is None and operator is None:
+        raise ValueError("with a precomputed jacobian, pass rendered (A x) or the solve's operator")
+    else:
+        Ax, J = None, jnp.asarray(jacobian)
     if operator is not None:
         if len(operator.views) != 1 or operator.views[0].A.shape != (y.shape[0], model.grid.size):
             raise ValueError("operator must be the one-view IlluminationOperator of a matrix on the model's rows "
@@ -176,6 +184,30 @@ def gauss_newton_step(model: SceneModel, theta: SceneParams, env, image, uncerta
     du = lx.linear_solve(normal, J.T @ r - s2 * u, lx.Cholesky()).value
     new = SceneParams.from_flat(theta.flat() + learning_rate * du @ uncertainty.basis().astype(du.dtype))
     return GaussNewtonStep(new, du, r @ r, u @ u, jnp.sqrt(s2), J)
+
+
+def transport_jacobian(transport: Callable[[SceneParams], TransportMatrix], theta: SceneParams, x,
+                       uncertainty: SceneUncertainty, step: float = 0.5) -> Float[Array, "M n"]:
+    """The whitened `T_x (P*C, n)` of eq. A.10 by central differences of a matrix builder.
+
+    Column `i` is `(A(theta + h sigma_i e_i) - A(theta - h sigma_i e_i)) x / 2h` with `h = step`
+    (in standard deviations): `2n` builds, e.g. Embree matrices of `model.perturb(...)`, whose
+    visibility is exact where the soft model's derivative is only approximate. Build with fixed
+    seeds so the two sides share their samples (common random numbers).
+    """
+    if not step > 0:
+        raise ValueError(f"step must be > 0 standard deviations, got {step}")
+    x = jnp.asarray(x)
+    columns = []
+    for b in np.asarray(uncertainty.basis()):
+        plus, minus = (transport(SceneParams.from_flat(theta.flat() + sign * step * jnp.asarray(b))).A
+                       for sign in (1, -1))
+        if plus.shape != minus.shape or plus.shape[1] != x.shape[0]:
+            raise ValueError(f"the matrices {step} standard deviations either side have shapes {plus.shape} and "
+                             f"{minus.shape} (map {x.shape[0]}): the move changed which pixels see the observed "
+                             "surfaces; build them on the model's rows with a larger SceneModel margin, or a smaller step")
+        columns.append(jnp.einsum("pn,n...->p...", plus - minus, x).reshape(-1) / (2 * step))
+    return jnp.stack(columns, axis=1)
 
 
 def _refit(B, A, x, J):
@@ -218,7 +250,7 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
                              transport: Callable[[SceneParams], TransportMatrix] | None = None,
                              mean: SceneParams | None = None, noise=None, smooth=DEFAULT_SMOOTH,
                              ridge=DEFAULT_RIDGE, tol: float = 0.02, refit: bool = True, backtrack: int = 3,
-                             progress: bool = True) -> SceneSolution:
+                             difference: float | None = None, progress: bool = True) -> SceneSolution:
     """Alternate the exact illumination solve (eq. 5.3) and Gauss-Newton steps on `theta` (eq. A.10).
 
     **Arguments:** `image (H, W[, C])` one photo, or `(K, H, W, C)` (or a list of `(H, W[, C])`)
@@ -227,7 +259,9 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     theta"); `theta` the starting parameters (default `mean`, itself default zeros);
     `transport(theta)` the matrix for the illumination solve (default the soft `model.transport`;
     an Embree build of `model.perturb(...)` with `mask=model.mask` is more accurate), the
-    derivatives always come from the soft model; `learning_rate` scales each step, which is
+    derivatives come from the soft model unless `difference` is set: then from central
+    differences of `transport` with that step in standard deviations (`transport_jacobian`,
+    `2n` builds per step); `learning_rate` scales each step, which is
     then halved up to `backtrack` times until the MAP objective (see `SceneSolution`) decreases;
     if none does, the loop stops. It also stops after `steps`, or once the whitened step is
     shorter than `tol` standard deviations. `refit=True` (default) takes the
@@ -259,8 +293,10 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     thetas, objectives, residuals, lengths, rates = [], [], [], [], []
     bar = tqdm(range(steps), desc="Gauss-Newton", disable=not progress)
     for _ in bar:
+        x = sol.env.reshape((op.B.shape[0],) + sol.env.shape[2:])
+        J = None if difference is None else transport_jacobian(build, theta, x, uncertainty, difference)
         out = step_fn(model, theta, sol.env, y, uncertainty, mean=mean, noise=noise, learning_rate=0.0,
-                      rendered=Ax, operator=op if refit else None)
+                      rendered=Ax, operator=op if refit else None, jacobian=J)
         s2 = float(out.noise) ** 2 if s2 is None else s2  # fixed from the first step: objectives compare
         f = value(total, theta, s2)
         thetas.append(theta)
