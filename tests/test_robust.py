@@ -1,5 +1,7 @@
 """Robust reconstruction under uncertain scene parameters (thesis appendix A)."""
 
+from types import SimpleNamespace
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -273,6 +275,9 @@ def test_transport_jacobian_is_the_whitened_derivative_of_the_builder(problem):
         hj.solvers.gauss_newton_step(model, theta, env, y, unc, jacobian=J)
     with pytest.raises(ValueError, match="step"):
         hj.solvers.transport_jacobian(model.transport, theta, x, unc, step=0.0)
+    rows = lambda th: SimpleNamespace(A=jnp.ones((10 if float(th.translation[0]) > 0 else 9, grid.size)))
+    with pytest.raises(ValueError, match="margin"):  # the move changed the rows: a clear error, not a broadcast
+        hj.solvers.transport_jacobian(rows, SceneParams.zeros(), x, unc)
 
 
 def test_scene_solve_with_embree_differences_recovers_the_pose():
