@@ -44,6 +44,12 @@ def test_parameters_flatten_sample_and_reject_bad_sigma(getkey):
     fixed = [i for i in range(13) if i not in unc.free]
     assert np.array_equal(flat[:, fixed], np.broadcast_to(np.asarray(theta.flat())[fixed], (4000, len(fixed))))
     assert np.allclose(flat.mean(0)[[0, 2, 4]], np.asarray(theta.flat())[[0, 2, 4]], atol=3e-3)
+    # unwhiten inverts whiten (about a zero mean: around theta's 3 m entries float32 keeps mm steps to ~1e-4)
+    u = jnp.asarray([0.5, -2.0, 1.0])
+    assert np.allclose(unc.whiten(unc.unwhiten(u, SceneParams.zeros()), SceneParams.zeros()), u)
+    moved = unc.unwhiten(u, theta)
+    assert np.array_equal(np.asarray(moved.flat())[fixed], np.asarray(theta.flat())[fixed])  # fixed entries stay
+    assert np.allclose(np.asarray(moved.flat() - theta.flat())[[0, 2, 4]], u * np.array([0.003, 0.001, 0.05]), rtol=1e-3)
     with pytest.raises(ValueError, match="sigma must be finite and >= 0"):
         SceneUncertainty.of(translation=-1.0)
     with pytest.raises(ValueError, match="every sigma is zero"):

@@ -182,7 +182,7 @@ def gauss_newton_step(model: SceneModel, theta: SceneParams, env, image, uncerta
         M = M - _refit(operator.B, A, x, J)
     normal = lx.MatrixLinearOperator(M, lx.positive_semidefinite_tag)
     du = lx.linear_solve(normal, J.T @ r - s2 * u, lx.Cholesky()).value
-    new = SceneParams.from_flat(theta.flat() + learning_rate * du @ uncertainty.basis().astype(du.dtype))
+    new = uncertainty.unwhiten(learning_rate * du, theta)
     return GaussNewtonStep(new, du, r @ r, u @ u, jnp.sqrt(s2), J)
 
 
@@ -199,9 +199,8 @@ def transport_jacobian(transport: Callable[[SceneParams], TransportMatrix], thet
         raise ValueError(f"step must be > 0 standard deviations, got {step}")
     x = jnp.asarray(x)
     columns = []
-    for b in np.asarray(uncertainty.basis()):
-        plus, minus = (transport(SceneParams.from_flat(theta.flat() + sign * step * jnp.asarray(b))).A
-                       for sign in (1, -1))
+    for e in np.eye(len(uncertainty.free), dtype=np.float32):
+        plus, minus = (transport(uncertainty.unwhiten(sign * step * e, theta)).A for sign in (1, -1))
         if plus.shape != minus.shape or plus.shape[1] != x.shape[0]:
             raise ValueError(f"the matrices {step} standard deviations either side have shapes {plus.shape} and "
                              f"{minus.shape} (map {x.shape[0]}): the move changed which pixels see the observed "
@@ -274,7 +273,6 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     theta = mean if theta is None else theta
     build = model.transport if transport is None else transport
     step_fn = eqx.filter_jit(gauss_newton_step)
-    basis = uncertainty.basis()
 
     def fit(th):  # the solve at th: (operator, solution, A x, ||y - A x||^2, data + regularizer)
         op = IlluminationOperator.build(build(th), smooth, ridge)
@@ -293,8 +291,8 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     thetas, objectives, residuals, lengths, rates = [], [], [], [], []
     bar = tqdm(range(steps), desc="Gauss-Newton", disable=not progress)
     for _ in bar:
-        x = sol.env.reshape((op.B.shape[0],) + sol.env.shape[2:])
-        J = None if difference is None else transport_jacobian(build, theta, x, uncertainty, difference)
+        J = None if difference is None else transport_jacobian(
+            build, theta, sol.env.reshape((op.B.shape[0],) + sol.env.shape[2:]), uncertainty, difference)
         out = step_fn(model, theta, sol.env, y, uncertainty, mean=mean, noise=noise, learning_rate=0.0,
                       rendered=Ax, operator=op if refit else None, jacobian=J)
         s2 = float(out.noise) ** 2 if s2 is None else s2  # fixed from the first step: objectives compare
@@ -305,7 +303,7 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
         lengths.append(float(jnp.linalg.norm(out.step)))
         rate = float(learning_rate)
         for _ in range(backtrack + 1):
-            trial = SceneParams.from_flat(theta.flat() + rate * out.step @ basis.astype(out.step.dtype))
+            trial = uncertainty.unwhiten(rate * out.step, theta)
             found = fit(trial)
             if value(found[4], trial, s2) < f:
                 break

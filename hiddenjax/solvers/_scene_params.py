@@ -108,11 +108,16 @@ class SceneUncertainty(eqx.Module):
         """`u = (theta - mean) / sigma` on the free entries."""
         return (theta.flat() - mean.flat())[jnp.asarray(self.free)] / self.scales()
 
+    def unwhiten(self, u, mean: SceneParams) -> SceneParams:
+        """`theta = mean + sigma u` on the free entries: the inverse of `whiten`."""
+        u = jnp.asarray(u)
+        return SceneParams.from_flat(mean.flat() + u @ self.basis().astype(u.dtype))
+
     def sample(self, key, count: int, mean: SceneParams | None = None) -> SceneParams:
         """`count` draws `theta_i ~ N(mean, diag(sigma^2))` (eq. A.2), stacked on a leading axis."""
         mean = SceneParams.zeros() if mean is None else mean
         u = jax.random.normal(key, (count, len(self.free)))
-        return jax.vmap(lambda ui: SceneParams.from_flat(mean.flat() + ui @ self.basis()))(u)
+        return jax.vmap(lambda ui: self.unwhiten(ui, mean))(u)
 
 
 def rotation_matrix(rotvec) -> Float[Array, "3 3"]:
