@@ -11,6 +11,7 @@ from conftest import relrmse
 
 import hiddenjax as hj
 from hiddenjax.solvers import SceneModel, SceneParams, SceneUncertainty
+from hiddenjax.solvers._robust import _projected_gram
 
 MM, DEG = 1e-3, np.radians(1.0)
 
@@ -236,6 +237,34 @@ def test_refit_step_is_the_joint_gauss_newton_step(problem):
     with pytest.raises(ValueError, match="model's rows"):
         hj.solvers.gauss_newton_step(model, theta, env, image, unc, operator=hj.solvers.IlluminationOperator.build(
             hj.transport_matrix(setup.scene, setup.camera, grid, samples=4, progress=False)))
+
+
+def test_refit_gram_stays_accurate_with_weak_regularization(problem, getkey):
+    """At 0.1% of the default weights B is ill-conditioned (cond > 1e6). A pose derivative lies mostly in
+    the range of A (a moved shadow is mostly a changed map), so K^T B^-1 K nearly cancels J^T J: formed
+    directly in float32 the difference lost two digits (2e-2 relative); the QR form keeps it to 1e-6."""
+    setup, _, _, _, _ = problem
+    fine = hj.EnvGrid(8, 16)
+    model = SceneModel.from_scene(setup.scene, setup.camera, fine, margin=1, tolerance=1e-10)
+    T = _embree(setup, fine, model, SceneParams.zeros(), samples=4)
+    op = hj.solvers.IlluminationOperator.build(T, smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,
+                                               ridge=1e-3 * hj.solvers.DEFAULT_RIDGE)
+    A = np.asarray(T.A, np.float64)
+    x = np.abs(np.asarray(jax.random.normal(getkey(), (fine.size, 3)))) * (np.arange(fine.size)[:, None] % 3 != 0)
+    Z = np.asarray(jax.random.normal(getkey(), (fine.size, 3, 3)), np.float64)
+    J = np.einsum("pn,ncj->pcj", A, Z) + 1e-3 * np.asarray(jax.random.normal(getkey(), (A.shape[0], 3, 3)))
+    J = np.asarray(jnp.asarray(J, jnp.float32), np.float64)
+    D = fine.difference_matrix(dense=True)
+    R = float(op.smooth) * D.T @ D + float(op.ridge) * np.eye(fine.size)
+    assert np.linalg.cond(A.T @ A + R) > 1e6
+    exact = np.zeros((3, 3))
+    for c in range(3):
+        AF = A[:, x[:, c] > 0]
+        K = AF.T @ J[:, c]
+        exact += J[:, c].T @ J[:, c] - K.T @ np.linalg.solve(AF.T @ AF + R[np.ix_(x[:, c] > 0, x[:, c] > 0)], K)
+    gram = _projected_gram(op, jnp.asarray(x, jnp.float32), jnp.asarray(J.reshape(-1, 3), jnp.float32))
+    assert relrmse(gram, exact) < 1e-4, (np.asarray(gram), exact)
+    assert np.linalg.eigvalsh(np.asarray(gram, np.float64)).min() > 0
 
 
 def test_scene_solve_shares_the_pose_across_lightings_and_never_increases_the_objective(problem):
