@@ -8,7 +8,8 @@ any `A`). We recover each sky with:
 - the true pose (the best any method here can do);
 - the naive solve with the believed pose;
 - model averaging over poses drawn from the uncertainty (eq. A.6, Embree matrices);
-- the Jacobian (Taylor) regularizer (eq. A.9, derivatives of the soft `A(theta)`);
+- the Jacobian (Taylor) regularizer (eq. A.9, derivatives of the soft `A(theta)`, or with
+  `--object-rows` central differences of Embree matrices);
 - Gauss-Newton pose correction alternated with the illumination solve (eq. A.10), one pose shared
   by all the photos, each with its own map (thesis appendix A: variation in the map stabilizes
   the pose); the pose is fitted with 0.1% of the default regularization weights (their bias on
@@ -20,9 +21,13 @@ for several starting errors, and report SSIM, RMSE and the recovered pose error.
 
 `--sky sun` (default) photographs skies with a small bright sun, detail far finer than the
 model's grid cells; `--sky cells` uses the same skies averaged over each grid cell, so the
-matrices are exact up to sampling and only the pose is wrong.
+matrices are exact up to sampling and only the pose is wrong. `--object-rows K` adds the
+teapot's own pixels, `K` pixels inside its silhouette, to the rows (`SceneModel(object_rows=K)`):
+under a sun the table's shadows alone cannot tell a move of the teapot from a small move of
+the sun; then the Jacobian regularizer also takes its derivatives from Embree differences.
 
     python examples/uncertain_scene.py [--quick] [--out DIR] [--starts N] [--lightings K] [--sky sun|cells]
+                                       [--size PX] [--object-rows K]
 """
 
 import argparse
@@ -51,14 +56,20 @@ def main(argv=None):
     parser.add_argument("--lightings", type=int, default=None, help="photos under different skies (default 4, quick 2)")
     parser.add_argument("--sky", choices=("sun", "cells"), default="sun",
                         help="full-resolution sun skies, or the same skies constant on the grid cells")
+    parser.add_argument("--size", type=int, default=None,
+                        help="image width and height in pixels (default 32, quick 16)")
+    parser.add_argument("--object-rows", type=int, default=None,
+                        help="also fit the teapot's pixels this many pixels inside its silhouette "
+                             "(default: the table's only)")
     args = parser.parse_args(argv)
     quick = args.quick
     size, grid = (16, hj.EnvGrid(6, 12)) if quick else (32, hj.EnvGrid(8, 16))
+    size = args.size or size
     samples, footprint, averaged, steps = (16, 4, 4, 2) if quick else (64, 16, 16, 6)
     starts = args.starts or (1 if quick else 4)
     lightings = args.lightings or (2 if quick else 4)
-    if starts < 1 or lightings < 1:
-        parser.error(f"--starts and --lightings must be >= 1, got {starts} and {lightings}")
+    if starts < 1 or lightings < 1 or size < 8:
+        parser.error(f"--starts and --lightings must be >= 1 and --size >= 8, got {starts}, {lightings} and {size}")
     args.out.mkdir(parents=True, exist_ok=True)
 
     setup = hj.scenes.object_on_plane("teapot", width=size, height=size)
@@ -71,14 +82,12 @@ def main(argv=None):
         skies = [np.repeat(np.repeat(t, sky.shape[0] // grid.height, 0), sky.shape[1] // grid.width, 1)
                  for t, sky in zip(truths, skies)]
     t0 = time.perf_counter()
-    model = SceneModel.from_scene(setup.scene, setup.camera, grid, margin=2)
+    model = SceneModel.from_scene(setup.scene, setup.camera, grid, margin=2, object_rows=args.object_rows)
     unc = SceneUncertainty.of(translation=[TRANSLATION, 0.0, TRANSLATION], rotation=[0.0, ROTATION, 0.0])
     mask = np.asarray(model.mask)
 
     def embree(theta):  # the exact matrix of the scene moved by theta, on the model's rows
-        scene, camera = model.perturb(setup.scene, setup.camera, theta)
-        return hj.transport_matrix(scene, camera, grid, samples=samples, pixel_samples=footprint, mask=mask, seed=0,
-                                   progress=False)
+        return model.exact_transport(setup.scene, setup.camera, theta, samples=samples, pixel_samples=footprint)
 
     def photos(theta):
         scene, camera = model.perturb(setup.scene, setup.camera, theta)
@@ -93,7 +102,8 @@ def main(argv=None):
     T0 = embree(SceneParams.zeros())
     thetas = unc.sample(jax.random.key(0), averaged)
     averaged_op = hj.solvers.model_average(embree, thetas, progress=False)
-    taylor_op = hj.solvers.taylor_operator(model, SceneParams.zeros(), unc, transport=T0)
+    taylor_op = hj.solvers.taylor_operator(model if args.object_rows is None else embree, SceneParams.zeros(), unc,
+                                           transport=T0)
     rng = np.random.default_rng(7)
     runs = []
     for k in range(starts):
@@ -142,7 +152,7 @@ def main(argv=None):
                     footprint_samples=footprint, soft_samples=4,
                     temperature=float(model.temperature), averaged_poses=averaged, gauss_newton_steps=steps,
                     pose_error=dict(translation_mm=TRANSLATION * 1e3, rotation_deg=float(np.degrees(ROTATION))),
-                    uncertainty=list(unc.names), rows=int(mask.sum())),
+                    uncertainty=list(unc.names), rows=int(mask.sum()), object_rows=args.object_rows),
         mean_ssim=mean_ssim,
         mean_rmse=mean_rmse,
         mean_ssim_tone_mapped=mean_ssim_tm,

@@ -65,7 +65,7 @@ def model_average(source, thetas: SceneParams, weights=None, smooth=DEFAULT_SMOO
     if p.shape != (count,):
         raise ValueError(f"weights must be ({count},), one per sample, got {p.shape}")
     if isinstance(source, SceneModel):
-        P, N = source.soft.pixels.shape[0], source.grid.size
+        P, N = source.pixels.shape[0], source.grid.size
         T = source.soft.wrap(jnp.zeros((P, N), jnp.float32))
         pad = -count % batch
         take = lambda a: jnp.concatenate([a, jnp.repeat(a[:1], pad, 0)]).reshape((-1, batch) + a.shape[1:])
@@ -94,32 +94,44 @@ def model_average(source, thetas: SceneParams, weights=None, smooth=DEFAULT_SMOO
     return IlluminationOperator.from_gram(T_mean, gram, smooth, ridge, absolute)
 
 
-def jacobian_gram(model: SceneModel, theta: SceneParams, uncertainty: SceneUncertainty) -> Float[Array, "N N"]:
-    """`sum_i sigma_i^2 A'_i^T A'_i` over the free parameters (eq. A.9), one forward derivative at a time.
+def jacobian_gram(source, theta: SceneParams, uncertainty: SceneUncertainty, step: float = 0.5) -> Float[Array, "N N"]:
+    """`sum_i sigma_i^2 A'_i^T A'_i` over the free parameters (eq. A.9), one derivative at a time.
 
-    Memory: one `(P, N)` derivative (a `lax.map` over parameters), never all of them.
+    `source` a `SceneModel` (forward derivatives of the soft model, a `lax.map` over parameters:
+    memory one `(P, N)` derivative) or a callable `theta -> TransportMatrix` (central differences
+    `step` standard deviations either side, `2n` builds, as `transport_jacobian`).
     """
+    if not isinstance(source, SceneModel):
+        return sum(dA.T @ dA for dA in _differences(source, theta, uncertainty, step))
+    return _soft_jacobian_gram(source, theta, uncertainty.basis())
+
+
+@eqx.filter_jit
+def _soft_jacobian_gram(model: SceneModel, theta: SceneParams, basis):
     flat, unravel = ravel_pytree(theta)
 
     def one(tangent):
         _, dA = jax.jvp(lambda f: model.matrix(unravel(f)), (flat,), (tangent.astype(flat.dtype),))
         return dA.T @ dA  # tangent is sigma_i e_i
 
-    return jnp.sum(jax.lax.map(one, uncertainty.basis()), axis=0)
+    return jnp.sum(jax.lax.map(one, basis), axis=0)
 
 
-def taylor_operator(model: SceneModel, theta: SceneParams, uncertainty: SceneUncertainty, smooth=DEFAULT_SMOOTH,
-                    ridge=DEFAULT_RIDGE, *, transport: TransportMatrix | None = None,
+def taylor_operator(source, theta: SceneParams, uncertainty: SceneUncertainty, smooth=DEFAULT_SMOOTH,
+                    ridge=DEFAULT_RIDGE, *, transport: TransportMatrix | None = None, step: float = 0.5,
                     absolute: bool = False) -> IlluminationOperator:
     """The Jacobian-regularized normal equations of eq. A.9 at `theta`, as an `IlluminationOperator`.
 
-    `transport` is the `A` of the data term (default `model.transport(theta)`; pass the Embree
-    matrix of the same rows for a more accurate `A`); the derivatives come from the soft model.
+    `source` as in `jacobian_gram` (a `SceneModel`, or a builder such as
+    `lambda th: model.exact_transport(scene, camera, th, ...)`). `transport` is the `A` of the data
+    term (default `source`'s at `theta`; with a `SceneModel`, pass the Embree matrix of the same
+    rows for a more accurate `A`).
     """
-    T = model.transport(theta) if transport is None else transport
-    if T.A.shape[0] != model.soft.pixels.shape[0]:
-        raise ValueError("transport must have the model's rows: build it with mask=model.mask")
-    return IlluminationOperator.from_gram(T, gram_matrix(T.A) + jacobian_gram(model, theta, uncertainty),
+    model = isinstance(source, SceneModel)
+    T = transport if transport is not None else source.transport(theta) if model else source(theta)
+    if model and T.A.shape[0] != source.pixels.shape[0]:
+        raise ValueError("transport must have the model's rows: build it with model.exact_transport")
+    return IlluminationOperator.from_gram(T, gram_matrix(T.A) + jacobian_gram(source, theta, uncertainty, step),
                                           smooth, ridge, absolute)
 
 
@@ -193,18 +205,22 @@ def transport_jacobian(transport: Callable[[SceneParams], TransportMatrix], thet
     visibility is exact where the soft model's derivative is only approximate. Build with fixed
     seeds so the two sides share their samples (common random numbers).
     """
+    x = jnp.asarray(x)
+    return jnp.stack([jnp.einsum("pn,n...->p...", dA, x).reshape(-1)
+                      for dA in _differences(transport, theta, uncertainty, step, x.shape[0])], axis=1)
+
+
+def _differences(transport, theta: SceneParams, uncertainty: SceneUncertainty, step: float, columns=None):
+    """`sigma_i dA/dtheta_i` for each free parameter, by central differences `step` standard deviations wide."""
     if not step > 0:
         raise ValueError(f"step must be > 0 standard deviations, got {step}")
-    x = jnp.asarray(x)
-    columns = []
     for e in np.eye(len(uncertainty.free), dtype=np.float32):
         plus, minus = (transport(uncertainty.unwhiten(sign * step * e, theta)).A for sign in (1, -1))
-        if plus.shape != minus.shape or plus.shape[1] != x.shape[0]:
+        if plus.shape != minus.shape or (columns is not None and plus.shape[1] != columns):
             raise ValueError(f"the matrices {step} standard deviations either side have shapes {plus.shape} and "
-                             f"{minus.shape} (map {x.shape[0]}): the move changed which pixels see the observed "
+                             f"{minus.shape} (map {columns}): the move changed which pixels see the observed "
                              "surfaces; build them on the model's rows with a larger SceneModel margin, or a smaller step")
-        columns.append(jnp.einsum("pn,n...->p...", plus - minus, x).reshape(-1) / (2 * step))
-    return jnp.stack(columns, axis=1)
+        yield (plus - minus) / (2 * step)
 
 
 def _projected_gram(operator: IlluminationOperator, x, J):
@@ -270,7 +286,8 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     (thesis appendix A: "variation in the environment map would better stabilize the estimate of
     theta"); `theta` the starting parameters (default `mean`, itself default zeros);
     `transport(theta)` the matrix for the illumination solve (default the soft `model.transport`;
-    an Embree build of `model.perturb(...)` with `mask=model.mask` is more accurate), the
+    an Embree build, `model.exact_transport(scene, camera, theta, ...)`, is more accurate and is
+    required with the model's `object_rows`), the
     derivatives come from the soft model unless `difference` is set: then from central
     differences of `transport` with that step in standard deviations (`transport_jacobian`,
     `2n` builds per step); `learning_rate` scales each step, which is
@@ -281,6 +298,9 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     `False` holds it fixed as eq. A.10 does. Each step costs one linearization with `n` forward
     derivatives of the soft model (the free parameters) and one `transport` per tried rate.
     """
+    if model.object_rows is not None and (transport is None or difference is None):
+        raise ValueError("a SceneModel with object_rows needs exact matrices and their differences: pass "
+                         "transport=lambda th: model.exact_transport(scene, camera, th, ...) and difference=0.5")
     y, unstack = _lightings(image)
     mean = SceneParams.zeros() if mean is None else mean
     theta = mean if theta is None else theta

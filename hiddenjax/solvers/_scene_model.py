@@ -5,8 +5,14 @@ Built on the sigmoid shadow-volume transport (`hj.shadows.SoftTransport`). For `
 footprint point along its (planar) receiver to where the moved pixel ray meets it,
 `p' = o' + d' (n.(p - o')) / (n.d')` with `o' = o + dt`, `d' = R (p - o)`; the albedo change
 scales every row. `perturb` applies the same `theta` to a `Scene` and `Camera`, for the Embree
-builder (the exact, non-differentiable path). Rows are a fixed mask, shrunk by `margin` pixels
-away from the object's silhouette, so that small moves never change which surface a row sees.
+builder (the exact, non-differentiable path; `exact_transport` builds it on the model's rows).
+Rows are a fixed mask, shrunk by `margin` pixels away from the object's silhouette, so that small
+moves never change which surface a row sees. `object_rows=k` adds the object's own pixels, its
+silhouette eroded by `k` pixels: they tell a move of the object from a change of the light, which
+the table's shadows alone cannot under a small sun (README, appendix A). The soft model does not
+render them (a pixel on a moving object sees a different surface point), so such a model takes
+its matrices and derivatives from `exact_transport` (`solve_scene_illumination(...,
+difference=)`).
 """
 
 import equinox as eqx
@@ -15,17 +21,18 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.ndimage
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from ..scene import Camera, EnvGrid, Scene, Surface
 from ..shadows import SoftTransport
-from ..transport import TransportMatrix
+from ..transport import TransportMatrix, transport_matrix
 from ..transport._build import _observed_pixels
 from ..transport._embree import RayCaster, primary_hits
 from ._scene_params import SceneParams, SceneUncertainty, rotation_matrix
 
 DEFAULT_TEMPERATURE = 1000.0  # 1/m: soft edges ~4 mm wide, about one pixel of the 32x32 teapot fixture
 DEFAULT_TOLERANCE = 1e-4
+OBJECT_FOOTPRINT = 16  # footprint samples per pixel that must all see the object for an object row
 
 
 class SceneModel(eqx.Module):
@@ -33,7 +40,9 @@ class SceneModel(eqx.Module):
 
     **Fields:** `soft` the `SoftTransport` of the modelled scene; `slot_normals (T, B, 3)` the
     receiver normals in its tile layout; `origin (3,)` the camera centre; `pivot (3,)`;
-    `temperature`; `surface` (static) the index of the moving object; `mask (H, W)` the rows.
+    `temperature`; `surface` (static) the index of the moving object; `mask (H, W)` the rows and
+    `pixels (P,)` their flat indices (the soft model's rows plus, with `object_rows`, the object's);
+    `object_rows` (static) the erosion of the object's rows in pixels, or `None`.
     """
 
     soft: SoftTransport
@@ -42,17 +51,22 @@ class SceneModel(eqx.Module):
     pivot: Float[Array, "3"]
     temperature: Float[Array, ""]
     mask: Bool[Array, "H W"]
+    pixels: Int[Array, " P"]
     surface: int = eqx.field(static=True)
     tolerance: float = eqx.field(static=True, default=DEFAULT_TOLERANCE)
+    object_rows: int | None = eqx.field(static=True, default=None)
 
     @classmethod
     def from_scene(cls, scene: Scene, camera: Camera, grid: EnvGrid, surface: int | None = None, *,
                    samples: int = 4, pixel_samples: int = 1, mask=None, margin: int = 2, seed: int = 0,
-                   temperature: float = DEFAULT_TEMPERATURE, tolerance: float = DEFAULT_TOLERANCE) -> "SceneModel":
+                   temperature: float = DEFAULT_TEMPERATURE, tolerance: float = DEFAULT_TOLERANCE,
+                   object_rows: int | None = None) -> "SceneModel":
         """The model of `scene` seen by `camera`; `surface` is the moving object (default: the one
         surface with `observe=False`). The rows are `mask` (default: the observed pixels) minus
-        the pixels within `margin` pixels of the object's silhouette. Receivers must be planar
-        for camera moves (`theta.camera_*`); the object may be any mesh.
+        the pixels within `margin` pixels of the object's silhouette, plus, with `object_rows=k`,
+        the pixels of the object itself `k` pixels inside its silhouette (those whose 16 footprint
+        samples all see it; `k >= 1` keeps small moves from changing what they see). Receivers
+        must be planar for camera moves (`theta.camera_*`); the object may be any mesh.
         """
         if surface is None:
             hidden = [k for k, s in enumerate(scene) if not s.observe]
@@ -64,6 +78,8 @@ class SceneModel(eqx.Module):
             raise ValueError(f"surface must index the scene's {len(scene)} surfaces, got {surface}")
         if not isinstance(margin, (int, np.integer)) or margin < 0:
             raise ValueError(f"margin must be an integer number of pixels >= 0, got {margin!r}")
+        if object_rows is not None and (not isinstance(object_rows, (int, np.integer)) or object_rows < 0):
+            raise ValueError(f"object_rows must be None or an integer erosion in pixels >= 0, got {object_rows!r}")
         caster = RayCaster(scene)
         hits, _ = primary_hits(caster, camera, 1, seed)
         shape = (camera.height, camera.width)
@@ -75,14 +91,28 @@ class SceneModel(eqx.Module):
         if not rows.any():
             raise ValueError(f"no pixel is left in the mask with margin={margin}: lower margin or pass a larger mask")
         soft = SoftTransport.from_scene(scene, camera, grid, samples, pixel_samples, rows, seed)
+        rows = np.zeros(shape[0] * shape[1], bool)
+        rows[np.asarray(soft.pixels)] = True
+        if object_rows is not None:
+            footprint, _ = primary_hits(caster, camera, OBJECT_FOOTPRINT, seed)
+            on = np.all(footprint.surface.reshape(rows.size, -1) == surface, axis=1).reshape(shape)
+            inner = scipy.ndimage.binary_erosion(on, iterations=object_rows) if object_rows else on
+            if mask is not None:
+                inner &= np.asarray(mask, bool)
+            if not inner.any():
+                raise ValueError(f"no pixel of surface {surface} is left {object_rows} pixels inside its silhouette "
+                                 "(inside the mask): lower object_rows or raise the image resolution")
+            rows |= inner.reshape(-1)
+        rows = rows.reshape(shape)
         rec = soft.receivers
         order = np.asarray(rec.order).reshape(rec.points.shape[:2])
         slot = np.where(order >= 0, order, order[:, :1])
         lo, hi = scene[surface].triangles.reshape(-1, 3).min(0), scene[surface].triangles.reshape(-1, 3).max(0)
         return cls(soft=soft, slot_normals=soft.normals[jnp.asarray(slot)],
                    origin=jnp.asarray(camera.origin, jnp.float32), pivot=jnp.asarray((lo + hi) / 2, jnp.float32),
-                   temperature=jnp.asarray(temperature, jnp.float32), mask=jnp.asarray(rows), surface=int(surface),
-                   tolerance=float(tolerance))
+                   temperature=jnp.asarray(temperature, jnp.float32), mask=jnp.asarray(rows),
+                   pixels=jnp.asarray(np.nonzero(rows.reshape(-1))[0], jnp.int32), surface=int(surface),
+                   tolerance=float(tolerance), object_rows=None if object_rows is None else int(object_rows))
 
     @property
     def grid(self) -> EnvGrid:
@@ -93,10 +123,16 @@ class SceneModel(eqx.Module):
         image = jnp.asarray(image)
         if image.shape[:2] != self.soft.image_shape:
             raise ValueError(f"image shape {image.shape} does not match the model's image {self.soft.image_shape}")
-        return image.reshape((-1,) + image.shape[2:])[self.soft.pixels]
+        return image.reshape((-1,) + image.shape[2:])[self.pixels]
 
+    @eqx.filter_jit
     def matrix(self, theta: SceneParams) -> Float[Array, "P N"]:
-        """`A(theta) (P, N)`; differentiate with forward mode (`jax.jvp`, see `jacobian`)."""
+        """`A(theta) (P, N)`; differentiate with forward mode (`jax.jvp`, see `jacobian`). Jitted:
+        eager calls compile once per model."""
+        if self.object_rows is not None:
+            raise ValueError("the soft model does not render the object's own rows (object_rows="
+                             f"{self.object_rows}): build matrices with model.exact_transport and take derivatives "
+                             "by differences (solve_scene_illumination(..., transport=..., difference=0.5))")
         R, c = rotation_matrix(theta.rotation), self.pivot
         occluder = self.soft.occluder.map_vertices(lambda v: (v - c[None]) @ R.T + (c + theta.translation)[None], self.surface)
         Rc, o = rotation_matrix(theta.camera_rotation), self.origin
@@ -109,6 +145,22 @@ class SceneModel(eqx.Module):
 
         soft = eqx.tree_at(lambda s: s.receivers, self.soft, self.soft.receivers.map_points(slide))
         return (1 + theta.albedo) * soft.matrix(occluder, self.temperature, self.tolerance)
+
+    def exact_transport(self, scene: Scene, camera: Camera, theta: SceneParams, **options) -> TransportMatrix:
+        """The Embree matrix of `scene` and `camera` moved by `theta`, on the model's rows.
+
+        `hj.transport_matrix(*self.perturb(scene, camera, theta), grid, mask=mask, seed=0,
+        progress=False, **options)`, keeping the object's pixels with `object_rows`. Raises if a
+        move changed which surface a row sees (then raise `margin` or `object_rows`).
+        """
+        options = dict(dict(seed=0, progress=False), **options)
+        T = transport_matrix(*self.perturb(scene, camera, theta), self.grid, mask=np.asarray(self.mask),
+                             keep_occluder=self.object_rows is not None, **options)
+        if T.pixels.shape != self.pixels.shape or not np.array_equal(np.asarray(T.pixels), np.asarray(self.pixels)):
+            changed = len(np.setxor1d(np.asarray(T.pixels), np.asarray(self.pixels)))
+            raise ValueError(f"the scene moved by {theta} sees other surfaces in {changed} of the model's rows: "
+                             "raise the SceneModel's margin (or object_rows), or move less")
+        return T
 
     def transport(self, theta: SceneParams) -> TransportMatrix:
         """`matrix(theta)` as a `TransportMatrix` (the rows of `mask`)."""
