@@ -28,10 +28,8 @@ def problem():
     return setup, grid, model, sky, jnp.asarray(env.mean(axis=2))
 
 
-def _embree(setup, grid, model, theta, samples=16):
-    scene, camera = model.perturb(setup.scene, setup.camera, theta)
-    return hj.transport_matrix(scene, camera, grid, samples=samples, mask=np.asarray(model.mask), seed=0,
-                               progress=False)
+def _embree(setup, model, theta, samples=16):
+    return model.exact_transport(setup.scene, setup.camera, theta, samples=samples)
 
 
 def test_parameters_flatten_sample_and_reject_bad_sigma(getkey):
@@ -62,10 +60,10 @@ def test_parameters_flatten_sample_and_reject_bad_sigma(getkey):
 
 def test_model_rows_and_bad_input(problem):
     setup, grid, model, _, _ = problem
-    T = _embree(setup, grid, model, SceneParams.zeros())
+    T = _embree(setup, model, SceneParams.zeros())
     assert T.A.shape[0] == int(model.mask.sum()) > 50
     # The rows keep clear of the object: moved by 3 mm, it still does not enter them.
-    T_moved = _embree(setup, grid, model, SceneParams.of(translation=[3 * MM, 0.0, 3 * MM]))
+    T_moved = _embree(setup, model, SceneParams.of(translation=[3 * MM, 0.0, 3 * MM]))
     assert np.array_equal(np.asarray(T_moved.pixels), np.asarray(T.pixels))
     with pytest.raises(ValueError, match="pass surface="):
         SceneModel.from_scene(hj.Scene([setup.scene[0]]), setup.camera, grid)
@@ -95,8 +93,7 @@ def test_soft_derivative_matches_embree_finite_differences(problem):
     _, J = jax.jit(lambda th: soft.jacobian(th, x, unc))(SceneParams.zeros())
     errors, cosines = [], []
     for i in range(2):
-        build = lambda th: hj.transport_matrix(*model.perturb(setup.scene, setup.camera, th), grid, samples=256,
-                                               pixel_samples=1, mask=np.asarray(model.mask), seed=0, progress=False)
+        build = lambda th: model.exact_transport(setup.scene, setup.camera, th, samples=256, pixel_samples=1)
         fd = (build(SceneParams.from_flat(unc.basis()[i])).A - build(SceneParams.from_flat(-unc.basis()[i])).A)
         fd = fd @ x.reshape(-1) / 2
         errors.append(relrmse(J[:, i], fd))
@@ -139,7 +136,7 @@ def test_taylor_system_is_model_averaging_of_the_linearized_model(problem):
 def test_model_average_and_taylor_regularize_and_solve(problem):
     setup, grid, model, sky, x = problem
     unc = SceneUncertainty.of(translation=[2 * MM, 0.0, 2 * MM], rotation=[0.0, 2 * DEG, 0.0])
-    T0 = _embree(setup, grid, model, SceneParams.zeros())
+    T0 = _embree(setup, model, SceneParams.zeros())
     plain = hj.solvers.IlluminationOperator.build(T0)
     taylor = hj.solvers.taylor_operator(model, SceneParams.zeros(), unc, transport=T0)
     extra = np.asarray(taylor.B - plain.B)
@@ -148,7 +145,7 @@ def test_model_average_and_taylor_regularize_and_solve(problem):
     assert np.trace(extra) > 1e-4 * np.trace(np.asarray(plain.B))
     image = hj.reference_render(setup.scene, setup.camera, sky, samples=64, pixel_samples=2, seed=1)
     thetas = unc.sample(jax.random.key(1), 3)
-    averaged = hj.solvers.model_average(lambda th: _embree(setup, grid, model, th), thetas, progress=False)
+    averaged = hj.solvers.model_average(lambda th: _embree(setup, model, th), thetas, progress=False)
     for op in (averaged, taylor):
         sol = op.solve(image)
         assert np.all(np.asarray(sol.env) >= 0) and float(jnp.max(sol.kkt_residual)) < 1e-3
@@ -247,7 +244,7 @@ def test_refit_gram_stays_accurate_with_weak_regularization(problem, getkey):
     setup, _, _, _, _ = problem
     fine = hj.EnvGrid(8, 16)
     model = SceneModel.from_scene(setup.scene, setup.camera, fine, margin=1, tolerance=1e-10)
-    T = _embree(setup, fine, model, SceneParams.zeros(), samples=4)
+    T = _embree(setup, model, SceneParams.zeros(), samples=4)
     op = hj.solvers.IlluminationOperator.build(T, smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,
                                                ridge=1e-3 * hj.solvers.DEFAULT_RIDGE)
     A = np.asarray(T.A, np.float64)
@@ -276,7 +273,7 @@ def test_scene_solve_shares_the_pose_across_lightings_and_never_increases_the_ob
     scene, camera = model.perturb(setup.scene, setup.camera, true)
     other = np.roll(sky, sky.shape[1] // 3, axis=1)  # the same sky turned by 120 degrees
     images = [hj.reference_render(scene, camera, s, samples=64, pixel_samples=8, seed=1) for s in (sky, other)]
-    embree = lambda th: _embree(setup, grid, model, th)  # 4 footprint samples
+    embree = lambda th: _embree(setup, model, th)  # 4 footprint samples
     fit = hj.solvers.solve_scene_illumination(model, images, unc, steps=3, transport=embree, progress=False)
     assert fit.env.shape == (2, *grid.shape, 3)
     separate = [hj.solve_illumination(embree(fit.theta), im).env for im in images]
@@ -333,7 +330,6 @@ def test_scene_solve_with_embree_differences_recovers_the_pose():
     setup = hj.scenes.object_on_plane("teapot", width=32, height=32)
     grid = hj.EnvGrid(8, 16)
     model = SceneModel.from_scene(setup.scene, setup.camera, grid, margin=2)
-    mask = np.asarray(model.mask)
     rng = np.random.default_rng(3)
     skies = [hj.scenes.procedural_sky(256, 512, seed=k, sun=(0.9, 2.0) if k == 0 else
                                       (rng.uniform(0.5, 1.2), rng.uniform(0, 2 * np.pi))) for k in range(4)]
@@ -344,8 +340,7 @@ def test_scene_solve_with_embree_differences_recovers_the_pose():
     images = [hj.reference_render(scene, camera, s, samples=128, pixel_samples=32, seed=1) for s in skies]
 
     def embree(th):
-        return hj.transport_matrix(*model.perturb(setup.scene, setup.camera, th), grid, samples=64, pixel_samples=16,
-                                   mask=mask, seed=0, progress=False)
+        return model.exact_transport(setup.scene, setup.camera, th, samples=64, pixel_samples=16)
 
     fit = hj.solvers.solve_scene_illumination(model, images, unc, steps=4, transport=embree, difference=0.5,
                                               smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,

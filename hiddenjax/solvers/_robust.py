@@ -127,9 +127,9 @@ def taylor_operator(source, theta: SceneParams, uncertainty: SceneUncertainty, s
     term (default `source`'s at `theta`; with a `SceneModel`, pass the Embree matrix of the same
     rows for a more accurate `A`).
     """
-    model = isinstance(source, SceneModel)
-    T = transport if transport is not None else source.transport(theta) if model else source(theta)
-    if model and T.A.shape[0] != source.pixels.shape[0]:
+    soft = isinstance(source, SceneModel)
+    T = transport if transport is not None else source.transport(theta) if soft else source(theta)
+    if soft and T.A.shape[0] != source.pixels.shape[0]:
         raise ValueError("transport must have the model's rows: build it with model.exact_transport")
     return IlluminationOperator.from_gram(T, gram_matrix(T.A) + jacobian_gram(source, theta, uncertainty, step),
                                           smooth, ridge, absolute)

@@ -156,7 +156,7 @@ class SceneModel(eqx.Module):
         options = dict(dict(seed=0, progress=False), **options)
         T = transport_matrix(*self.perturb(scene, camera, theta), self.grid, mask=np.asarray(self.mask),
                              keep_occluder=self.object_rows is not None, **options)
-        if T.pixels.shape != self.pixels.shape or not np.array_equal(np.asarray(T.pixels), np.asarray(self.pixels)):
+        if not np.array_equal(np.asarray(T.pixels), np.asarray(self.pixels)):
             changed = len(np.setxor1d(np.asarray(T.pixels), np.asarray(self.pixels)))
             raise ValueError(f"the scene moved by {theta} sees other surfaces in {changed} of the model's rows: "
                              "raise the SceneModel's margin (or object_rows), or move less")
