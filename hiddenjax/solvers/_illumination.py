@@ -98,6 +98,7 @@ def regularization_weights(T, smooth, ridge, absolute: bool = False):
     return smooth * scale, ridge * scale
 
 
+@partial(jax.jit, static_argnames=("block", "chunk"))
 def gram_matrix(A: Float[Array, "P N"], block: int = 256, chunk: int = 2048) -> Float[Array, "N N"]:
     """`A^T A` from the column blocks on and above the diagonal, skipping all-zero column blocks.
 
@@ -294,6 +295,7 @@ def _kkt_residual(grad, c, x, nonneg):
     return jnp.max(jnp.abs(violation), axis=0) / jnp.maximum(jnp.max(jnp.abs(c), axis=0), 1e-30)
 
 
+@eqx.filter_jit
 def _solve(B, factor, c, solver, nonneg):
     """`c (N,)` or `(N, K)`: `x`, `B x - c`, steps and result code per column. `factor`: B's lower Cholesky factor.
 
@@ -305,8 +307,8 @@ def _solve(B, factor, c, solver, nonneg):
     if not isinstance(solver, (ProjectedNewton, DampedNewton)):
         raise ValueError(f"solver must be ProjectedNewton or DampedNewton, got {type(solver).__name__}")
     unconstrained = _cho_solve(factor, c)
-    gradient = lambda x: jnp.einsum("mn,n...->m...", B, x) - c
-    if not nonneg:
+    gradient = lambda x: jnp.einsum("mn,n...->m...", B, x) - c  # (jitted, as is `gram_matrix`: run eagerly, their
+    if not nonneg:  # loop bodies, new closures each call, were compiled anew every call, and a long run crashed)
         ones = jnp.ones(c.shape[1:], jnp.int32)
         return unconstrained, gradient(unconstrained), ones, ones * SUCCESS
     if isinstance(solver, DampedNewton):
