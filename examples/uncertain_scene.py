@@ -25,9 +25,12 @@ matrices are exact up to sampling and only the pose is wrong. `--object-rows K` 
 teapot's own pixels, `K` pixels inside its silhouette, to the rows (`SceneModel(object_rows=K)`):
 under a sun the table's shadows alone cannot tell a move of the teapot from a small move of
 the sun; then the Jacobian regularizer also takes its derivatives from Embree differences.
+`--grid H` sets the environment map to `H x 2H` cells (`--samples` Embree directions per cell):
+an 8x16 cell is wider than the shadow's turn for a few degrees of yaw, so under a sun the yaw is
+lost; `--size 64 --grid 16 --samples 16 --object-rows 2` recovers the pose (README).
 
     python examples/uncertain_scene.py [--quick] [--out DIR] [--starts N] [--lightings K] [--sky sun|cells]
-                                       [--size PX] [--object-rows K]
+                                       [--size PX] [--grid H] [--samples S] [--object-rows K]
 """
 
 import argparse
@@ -58,6 +61,10 @@ def main(argv=None):
                         help="full-resolution sun skies, or the same skies constant on the grid cells")
     parser.add_argument("--size", type=int, default=None,
                         help="image width and height in pixels (default 32, quick 16)")
+    parser.add_argument("--grid", type=int, default=None,
+                        help="environment map rows; columns are twice that (default 8, quick 6)")
+    parser.add_argument("--samples", type=int, default=None,
+                        help="Embree directions per environment map cell (default 64, quick 16)")
     parser.add_argument("--object-rows", type=int, default=None,
                         help="also fit the teapot's pixels this many pixels inside its silhouette "
                              "(default: the table's only)")
@@ -65,11 +72,14 @@ def main(argv=None):
     quick = args.quick
     size, grid = (16, hj.EnvGrid(6, 12)) if quick else (32, hj.EnvGrid(8, 16))
     size = args.size or size
+    grid = hj.EnvGrid(args.grid, 2 * args.grid) if args.grid else grid
     samples, footprint, averaged, steps = (16, 4, 4, 2) if quick else (64, 16, 16, 6)
+    samples = args.samples or samples
     starts = args.starts or (1 if quick else 4)
     lightings = args.lightings or (2 if quick else 4)
-    if starts < 1 or lightings < 1 or size < 8:
-        parser.error(f"--starts and --lightings must be >= 1 and --size >= 8, got {starts}, {lightings} and {size}")
+    if starts < 1 or lightings < 1 or size < 8 or samples < 1 or grid.height < 2:
+        parser.error(f"--starts, --lightings and --samples must be >= 1, --size >= 8 and --grid >= 2, got "
+                     f"{starts}, {lightings}, {samples}, {size} and {grid.height}")
     args.out.mkdir(parents=True, exist_ok=True)
 
     setup = hj.scenes.object_on_plane("teapot", width=size, height=size)
@@ -79,6 +89,8 @@ def main(argv=None):
              for k in range(lightings)]
     truths = [grid.downsample(sky) for sky in skies]
     if args.sky == "cells":
+        if skies[0].shape[0] % grid.height:
+            parser.error(f"--sky cells needs --grid dividing {skies[0].shape[0]}, got {grid.height}")
         skies = [np.repeat(np.repeat(t, sky.shape[0] // grid.height, 0), sky.shape[1] // grid.width, 1)
                  for t, sky in zip(truths, skies)]
     t0 = time.perf_counter()
