@@ -70,27 +70,27 @@ def main(argv=None):
                              "(default: the table's only)")
     args = parser.parse_args(argv)
     quick = args.quick
-    size, grid = (16, hj.EnvGrid(6, 12)) if quick else (32, hj.EnvGrid(8, 16))
-    size = args.size or size
-    grid = hj.EnvGrid(args.grid, 2 * args.grid) if args.grid else grid
+    pick = lambda value, default: default if value is None else value  # an explicit 0 is checked, not replaced
+    size, height = pick(args.size, 16 if quick else 32), pick(args.grid, 6 if quick else 8)
     samples, footprint, averaged, steps = (16, 4, 4, 2) if quick else (64, 16, 16, 6)
-    samples = args.samples or samples
-    starts = args.starts or (1 if quick else 4)
-    lightings = args.lightings or (2 if quick else 4)
-    if starts < 1 or lightings < 1 or size < 8 or samples < 1 or grid.height < 2:
+    samples = pick(args.samples, samples)
+    starts, lightings = pick(args.starts, 1 if quick else 4), pick(args.lightings, 2 if quick else 4)
+    sky_rows = 64 if quick else 256
+    if starts < 1 or lightings < 1 or size < 8 or samples < 1 or height < 2:
         parser.error(f"--starts, --lightings and --samples must be >= 1, --size >= 8 and --grid >= 2, got "
-                     f"{starts}, {lightings}, {samples}, {size} and {grid.height}")
+                     f"{starts}, {lightings}, {samples}, {size} and {height}")
+    if args.sky == "cells" and sky_rows % height:
+        parser.error(f"--sky cells needs --grid dividing {sky_rows}, got {height}")
+    grid = hj.EnvGrid(height, 2 * height)
     args.out.mkdir(parents=True, exist_ok=True)
 
     setup = hj.scenes.object_on_plane("teapot", width=size, height=size)
     suns = np.random.default_rng(3)
-    skies = [hj.scenes.procedural_sky(64 if quick else 256, 128 if quick else 512, seed=k,
+    skies = [hj.scenes.procedural_sky(sky_rows, 2 * sky_rows, seed=k,
                                       sun=(0.9, 2.0) if k == 0 else (suns.uniform(0.5, 1.2), suns.uniform(0, 2 * np.pi)))
              for k in range(lightings)]
     truths = [grid.downsample(sky) for sky in skies]
     if args.sky == "cells":
-        if skies[0].shape[0] % grid.height:
-            parser.error(f"--sky cells needs --grid dividing {skies[0].shape[0]}, got {grid.height}")
         skies = [np.repeat(np.repeat(t, sky.shape[0] // grid.height, 0), sky.shape[1] // grid.width, 1)
                  for t, sky in zip(truths, skies)]
     t0 = time.perf_counter()

@@ -303,12 +303,14 @@ def _solve(B, factor, c, solver, nonneg):
     gradients from one product with `B`; the non-negative solves then run one column at a time
     (`lax.scan`, not `vmap`: under `vmap` the per-step choice of the free block's size, a
     `lax.switch`, would run every size), each also trying the previous column's solution as its start.
+    Jitted, as is `gram_matrix`: run eagerly, their loop bodies (new closures on every call) were
+    compiled anew each time, and a long run of eager solves crashed when that code filled memory.
     """
     if not isinstance(solver, (ProjectedNewton, DampedNewton)):
         raise ValueError(f"solver must be ProjectedNewton or DampedNewton, got {type(solver).__name__}")
     unconstrained = _cho_solve(factor, c)
-    gradient = lambda x: jnp.einsum("mn,n...->m...", B, x) - c  # (jitted, as is `gram_matrix`: run eagerly, their
-    if not nonneg:  # loop bodies, new closures each call, were compiled anew every call, and a long run crashed)
+    gradient = lambda x: jnp.einsum("mn,n...->m...", B, x) - c
+    if not nonneg:
         ones = jnp.ones(c.shape[1:], jnp.int32)
         return unconstrained, gradient(unconstrained), ones, ones * SUCCESS
     if isinstance(solver, DampedNewton):
