@@ -8,6 +8,8 @@ any `A`). We recover each sky with:
 - the true pose (the best any method here can do);
 - the naive solve with the believed pose;
 - model averaging over poses drawn from the uncertainty (eq. A.6, Embree matrices);
+- the same average weighted by the posterior (each drawn pose by how well its matrix explains the
+  photos, `posterior_average`; the noise is the naive solve's RMS residual);
 - the Jacobian (Taylor) regularizer (eq. A.9, derivatives of the soft `A(theta)`, or with
   `--object-rows` central differences of Embree matrices);
 - Gauss-Newton pose correction alternated with the illumination solve (eq. A.10), one pose shared
@@ -101,6 +103,14 @@ def main(argv=None):
     def embree(theta):  # the exact matrix of the scene moved by theta, on the model's rows
         return model.exact_transport(setup.scene, setup.camera, theta, samples=samples, pixel_samples=footprint)
 
+    built = {}  # the averaged poses' matrices, built once for all starts (averaged x rows x cells floats)
+
+    def embree_once(theta):
+        key = tuple(np.asarray(theta.flat()).tolist())
+        if key not in built:
+            built[key] = embree(theta)
+        return built[key]
+
     def photos(theta):
         scene, camera = model.perturb(setup.scene, setup.camera, theta)
         return [hj.reference_render(scene, camera, sky, samples=64 if quick else 128, pixel_samples=2 * footprint,
@@ -113,7 +123,7 @@ def main(argv=None):
     # The believed pose is theta = 0; the methods that do not move the pose share it.
     T0 = embree(SceneParams.zeros())
     thetas = unc.sample(jax.random.key(0), averaged)
-    averaged_op = hj.solvers.model_average(embree, thetas, progress=False)
+    averaged_op = hj.solvers.model_average(embree_once, thetas, progress=False)
     taylor_op = hj.solvers.taylor_operator(model if args.object_rows is None else embree, SceneParams.zeros(), unc,
                                            transport=T0)
     rng = np.random.default_rng(7)
@@ -125,9 +135,12 @@ def main(argv=None):
         images = photos(true)
         true_op = hj.solvers.IlluminationOperator.build(embree(true))
         naive_op = hj.solvers.IlluminationOperator.build(T0)
+        energy = sum(float(np.sum(naive_op.solve(im).objective)) for im in images)
+        noise = np.sqrt(energy / (len(images) * T0.A.shape[0] * np.asarray(images[0]).shape[-1]))
+        posterior = hj.solvers.posterior_average(embree_once, thetas, images, noise, progress=False)
         estimates = {name: [op.solve(im).env for im in images] for name, op in (
             ("true pose", true_op), ("naive (believed pose)", naive_op), ("model averaging (A.6)", averaged_op),
-            ("Jacobian regularizer (A.9)", taylor_op))}
+            ("posterior averaging (A.6)", posterior.operator), ("Jacobian regularizer (A.9)", taylor_op))}
         t = time.perf_counter()
         gn = hj.solvers.solve_scene_illumination(model, images, unc, steps=steps, transport=embree, difference=0.5,
                                                  smooth=1e-3 * DEFAULT_SMOOTH, ridge=1e-3 * DEFAULT_RIDGE, tol=0.05)
@@ -142,6 +155,10 @@ def main(argv=None):
             estimates=estimates,
             errors={name: score(env) for name, env in estimates.items()},
             found_pose=str(gn.theta),
+            posterior_effective_samples=round(float(posterior.effective_samples), 2),
+            posterior_best_sample_error=round(float(np.linalg.norm(unc.whiten(
+                jax.tree_util.tree_map(lambda a: a[int(np.argmax(posterior.weights))], thetas), true))), 2),
+            believed_pose_error=round(float(np.linalg.norm(unc.whiten(SceneParams.zeros(), true))), 2),
             translation_error_mm=(np.linalg.norm(err[:, :3], axis=1) * 1e3).round(3).tolist(),
             rotation_error_deg=np.degrees(np.linalg.norm(err[:, 3:6], axis=1)).round(3).tolist(),
             gauss_newton_steps=int(gn.steps),

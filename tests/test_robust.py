@@ -155,6 +155,46 @@ def test_model_average_and_taylor_regularize_and_solve(problem):
     assert relrmse(soft_jit, soft_loop.B) < 1e-5
 
 
+def test_posterior_average_is_a_one_pass_weighted_model_average(problem):
+    """Bayesian model averaging: the running log-sum-exp equals weights computed from separate solves,
+    its normal equations are eq. A.6 with those weights, huge noise gives A.6's equal weights, the
+    soft path (vmapped solves in one scan, jitted) equals its loop. Which sample wins needs an
+    identifiable pose: see test_scene_solve_with_embree_differences_recovers_the_pose."""
+    setup, grid, model, sky, _ = problem
+    true = SceneParams.of(translation=[2 * MM, 0.0, -1.5 * MM], rotation=[0.0, 2 * DEG, 0.0])
+    scene, camera = model.perturb(setup.scene, setup.camera, true)
+    photos = [hj.reference_render(scene, camera, sky, samples=64, pixel_samples=2, seed=s) for s in (1, 2)]
+    thetas = SceneUncertainty.of(translation=[2 * MM, 0.0, 2 * MM], rotation=[0.0, 2 * DEG, 0.0]).sample(
+        jax.random.key(2), 4)
+    build = lambda th: _embree(setup, model, th)
+    noise = 0.01  # energies 24-27 differ by 0.1-0.6: weights from ~1 to ~1e-700
+    fit = hj.solvers.posterior_average(build, thetas, photos, noise, progress=False)
+    energies = np.array([sum(float(jnp.sum(hj.solvers.IlluminationOperator.build(build(
+        jax.tree_util.tree_map(lambda a: a[i], thetas))).solve(im).objective)) for im in photos) for i in range(4)])
+    expected = np.exp(-(energies - energies.min()) / (2 * noise**2))
+    assert np.allclose(np.asarray(fit.log_likelihood), -energies / (2 * noise**2), rtol=1e-4)
+    assert np.allclose(np.asarray(fit.weights), expected / expected.sum(), atol=1e-4)
+    assert float(fit.effective_samples) == pytest.approx(1 / np.sum((expected / expected.sum()) ** 2), rel=1e-3)
+    weighted = hj.solvers.model_average(build, thetas, weights=fit.weights, progress=False)
+    assert relrmse(fit.operator.B, weighted.B) < 1e-5
+    # Noise far above the residuals: the weights become equal, and so is eq. A.6.
+    flat_fit = hj.solvers.posterior_average(build, thetas, photos[0], 1e3, progress=False)
+    assert np.allclose(np.asarray(flat_fit.weights), 0.25, atol=1e-4)
+    assert relrmse(flat_fit.operator.B, hj.solvers.model_average(build, thetas, progress=False).B) < 1e-5
+    gray = [im.mean(axis=2) for im in photos]
+    soft = jax.jit(lambda th, ims: hj.solvers.posterior_average(model, th, ims, 0.05, batch=3))(thetas, gray)
+    loop = hj.solvers.posterior_average(model.transport, thetas, gray, 0.05, progress=False)
+    assert relrmse(soft.operator.B, loop.operator.B) < 1e-4
+    # float32 energies (|y|^2 minus nearly as much) agree to ~2e-4; their differences, which set the weights, to 0.02
+    assert np.allclose(np.asarray(soft.log_likelihood), np.asarray(loop.log_likelihood), rtol=1e-3)
+    assert np.allclose(np.diff(np.asarray(soft.log_likelihood)), np.diff(np.asarray(loop.log_likelihood)), atol=0.05)
+    for bad in (0.0, float("nan")):
+        with pytest.raises(ValueError, match="noise must be"):
+            hj.solvers.posterior_average(build, thetas, photos, bad, progress=False)
+    with pytest.raises(ValueError, match="not all 0"):
+        hj.solvers.model_average(build, thetas, weights=jnp.zeros(4), progress=False)
+
+
 def _fd_step(model, theta, x, y, unc, noise, h=0.1):
     """Dense Gauss-Newton step with a central-difference Jacobian (float64 normal equations)."""
     flat = theta.flat()
@@ -348,6 +388,13 @@ def test_scene_solve_with_embree_differences_recovers_the_pose():
     error = lambda th: float(np.linalg.norm(unc.whiten(th, true)))  # in standard deviations
     assert error(SceneParams.zeros()) > 1.4
     assert error(fit.theta) < 0.3, (error(fit.theta), str(fit.theta), str(true))
+    # Bayesian model averaging over the believed pose, the true one and two others: the photos
+    # give the true pose's sample the weight.
+    flat = jnp.stack([SceneParams.zeros().flat(), true.flat(), -true.flat(), true.flat().at[4].multiply(-1)])
+    posterior = hj.solvers.posterior_average(embree, jax.vmap(SceneParams.from_flat)(flat), images, 0.05,
+                                             smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,
+                                             ridge=1e-3 * hj.solvers.DEFAULT_RIDGE, progress=False)
+    assert int(jnp.argmax(posterior.weights)) == 1 and float(posterior.weights[1]) > 0.99, posterior.log_likelihood
 
 
 def test_object_rows_pin_the_translation_under_a_sun():

@@ -24,7 +24,9 @@ from ._robust import GaussNewtonStep as GaussNewtonStep
 from ._robust import SceneSolution as SceneSolution
 from ._robust import gauss_newton_step as gauss_newton_step
 from ._robust import jacobian_gram as jacobian_gram
+from ._robust import PosteriorAverage as PosteriorAverage
 from ._robust import model_average as model_average
+from ._robust import posterior_average as posterior_average
 from ._robust import solve_scene_illumination as solve_scene_illumination
 from ._robust import taylor_operator as taylor_operator
 from ._robust import transport_jacobian as transport_jacobian

@@ -2,7 +2,9 @@
 
 - **Model averaging** (eq. A.6): minimize the expected objective over `theta_i ~ N(theta, sigma^2)`;
   its normal equations are `(sum_i p_i A_i^T A_i + R) x = (sum_i p_i A_i)^T y`, accumulated one
-  `A_i` at a time (`model_average`).
+  `A_i` at a time (`model_average`). With the photos in hand, the weights `p(theta_i)` of eq. A.3
+  may be the posterior, each sample weighed by how well its `A_i` explains them
+  (`posterior_average`, Bayesian model averaging).
 - **Jacobian (Taylor) regularizer** (eq. A.9): `(A^T A + sum_i sigma_i^2 A'_i^T A'_i + R) x = A^T y`
   with `A'_i = dA/dtheta_i` by forward mode, one parameter at a time (`taylor_operator`). It is
   model averaging of the linearized model `A + sum_i eps_i A'_i` (test). The nonlinear average also
@@ -60,38 +62,118 @@ def model_average(source, thetas: SceneParams, weights=None, smooth=DEFAULT_SMOO
     normalized. Only the running `sum p_i A_i^T A_i (N, N)` and `sum p_i A_i (P, N)` are kept.
     Returns an `IlluminationOperator`: `.solve(image)` gives the model-averaged estimate.
     """
+    return _average(source, thetas, weights, smooth, ridge, absolute, batch, progress, "model averaging").operator
+
+
+class PosteriorAverage(eqx.Module):
+    """Result of `posterior_average`: `operator` (an `IlluminationOperator` of the weighted eq. A.6),
+    `weights (n,)` the normalized posterior weights `p_i`, `log_likelihood (n,)` `-E_i / (2 noise^2)`."""
+
+    operator: IlluminationOperator
+    weights: Float[Array, " n"]
+    log_likelihood: Float[Array, " n"]
+
+    @property
+    def effective_samples(self) -> Float[Array, ""]:
+        """`1 / sum p_i^2`: 1 when one sample takes all the weight, `n` for equal weights."""
+        return 1.0 / jnp.sum(self.weights**2)
+
+
+def posterior_average(source, thetas: SceneParams, images, noise, weights=None, smooth=DEFAULT_SMOOTH,
+                      ridge=DEFAULT_RIDGE, *, absolute: bool = False, batch: int = 4,
+                      progress: bool = True) -> PosteriorAverage:
+    """Eq. A.6 with the weights `p(theta_i)` of A.3 taken as the posterior given the photos (Bayesian model averaging).
+
+    `p_i ∝ w_i exp(-E_i / (2 noise^2))`, `w_i` the prior `weights` (equal for samples drawn from the
+    uncertainty), `E_i = sum over images of min_{x >= 0} ||A_i x - y||^2 + R(x)` the minimum of eq. 5.3
+    with `A_i` (the photos of one scene under several lightings share the pose, each with its own
+    map), `noise` the pixel noise standard deviation (e.g. the root-mean-square residual of the
+    solve at the believed pose). It is the Laplace approximation of the marginal likelihood without
+    its log-determinant, which changes little between nearby poses. Samples whose matrix explains
+    the photos better weigh more; with thousands of pixels one sample often takes nearly all of the
+    weight (`effective_samples`). Accumulated in one pass (a running log-sum-exp), memory as
+    `model_average`; `source`, `thetas`, `weights` as there. `images` one photo or a sequence.
+    """
+    images = (images,) if not isinstance(images, (list, tuple)) else tuple(images)
+    if not images:
+        raise ValueError("images must hold at least one photo")
+    noise = float(noise)
+    if not (np.isfinite(noise) and noise > 0):
+        raise ValueError(f"noise must be a finite standard deviation > 0, got {noise}; e.g. the RMS residual "
+                         "sqrt(objective / observed values) of the solve at the believed pose")
+
+    def log_likelihood(T, gram):
+        op = IlluminationOperator.from_gram(T, gram, smooth, ridge, absolute)
+        return -sum(jnp.sum(op.solve(im).objective) for im in images) / (2 * noise**2)
+
+    return _average(source, thetas, weights, smooth, ridge, absolute, batch, progress, "posterior averaging",
+                    log_likelihood, images)
+
+
+def _average(source, thetas, weights, smooth, ridge, absolute, batch, progress, desc, log_likelihood=None,
+             images=()) -> PosteriorAverage:
+    """`sum_i p_i A_i^T A_i` and `sum_i p_i A_i` with `p_i ∝ weights_i exp(log_likelihood(A_i, A_i^T A_i))`.
+
+    A running log-sum-exp: the sums are kept relative to the largest log weight so far, so a weight
+    that underflows alone (exp(-1e4)) cannot turn the result into 0/0.
+    """
     count = jax.tree_util.tree_leaves(thetas)[0].shape[0]
-    p = jnp.full(count, 1.0 / count) if weights is None else jnp.asarray(weights) / jnp.sum(weights)
-    if p.shape != (count,):
-        raise ValueError(f"weights must be ({count},), one per sample, got {p.shape}")
+    w = jnp.full(count, 1.0 / count) if weights is None else jnp.asarray(weights, jnp.float32)
+    concrete = not isinstance(w, jax.core.Tracer)
+    if w.shape != (count,) or (concrete and not (np.all(np.asarray(w) >= 0) and np.any(np.asarray(w) > 0))):
+        raise ValueError(f"weights must be ({count},) non-negative numbers, not all 0, one per sample; got "
+                         f"{np.asarray(weights) if concrete else w.shape}")
+    w = w / jnp.sum(w)
+    loglik = (lambda T, G: jnp.zeros((), G.dtype)) if log_likelihood is None else log_likelihood
+    prior = jnp.log(w)
+
+    def add(acc, G, A, a):  # acc = (max, sum exp, gram, mean); G (b, N, N), A (b, P, N), a (b,) log weights
+        top = jnp.maximum(acc[0], jnp.max(a))
+        old, new = jnp.exp(acc[0] - top), jnp.exp(a - top)
+        return (top, acc[1] * old + jnp.sum(new), acc[2] * old + jnp.einsum("b,bmn->mn", new, G),
+                acc[3] * old + jnp.einsum("b,bpn->pn", new, A))
+
     if isinstance(source, SceneModel):
         P, N = source.pixels.shape[0], source.grid.size
         T = source.soft.wrap(jnp.zeros((P, N), jnp.float32))
+        for im in images:
+            _check_image(T, im)
         pad = -count % batch
         take = lambda a: jnp.concatenate([a, jnp.repeat(a[:1], pad, 0)]).reshape((-1, batch) + a.shape[1:])
-        xs = (jax.tree_util.tree_map(take, thetas), jnp.concatenate([p, jnp.zeros(pad, p.dtype)]).reshape(-1, batch))  # padding weighs 0
+        xs = (jax.tree_util.tree_map(take, thetas),
+              jnp.concatenate([prior, jnp.full(pad, -jnp.inf, prior.dtype)]).reshape(-1, batch))  # padding weighs 0
 
         def body(acc, x):
-            th, w = x
+            th, lp = x
             A = jax.vmap(source.matrix)(th)  # (batch, P, N)
-            return (acc[0] + jnp.einsum("b,bpm,bpn->mn", w, A, A), acc[1] + jnp.einsum("b,bpn->pn", w, A)), None
+            G = jnp.einsum("bpm,bpn->bmn", A, A)
+            ll = jax.vmap(lambda a, g: loglik(source.soft.wrap(a), g))(A, G)
+            return add(acc, G, A, lp + ll), ll
 
-        (gram, mean), _ = jax.lax.scan(body, (jnp.zeros((N, N), T.A.dtype), jnp.zeros((P, N), T.A.dtype)), xs)
+        init = (jnp.asarray(-jnp.inf, T.A.dtype), jnp.zeros((), T.A.dtype), jnp.zeros((N, N), T.A.dtype),
+                jnp.zeros((P, N), T.A.dtype))
+        acc, ll = jax.lax.scan(body, init, xs)
+        ll = ll.reshape(-1)[:count]
     else:
-        gram = mean = T = None
-        for i in tqdm(range(count), desc="model averaging", disable=not progress):
+        acc, T, lls = None, None, []
+        for i in tqdm(range(count), desc=desc, disable=not progress):
             Ti = source(jax.tree_util.tree_map(lambda a: a[i], thetas))
             if not isinstance(Ti, TransportMatrix):
                 raise ValueError(f"source(theta) must return a TransportMatrix, got {type(Ti).__name__}")
             if T is None:
-                T, gram, mean = Ti, 0.0, 0.0
+                T = Ti
+                acc = (jnp.asarray(-jnp.inf, T.A.dtype), jnp.zeros((), T.A.dtype), 0.0, 0.0)
             elif Ti.A.shape != T.A.shape or not np.array_equal(np.asarray(Ti.pixels), np.asarray(T.pixels)):
                 raise ValueError("every sample's transport matrix must have the same rows: build them all with "
                                  "mask=model.mask (the rows of the unperturbed scene)")
-            gram = gram + p[i] * gram_matrix(Ti.A)
-            mean = mean + p[i] * Ti.A
-    T_mean = eqx.tree_at(lambda t: t.A, T, mean)
-    return IlluminationOperator.from_gram(T_mean, gram, smooth, ridge, absolute)
+            G = gram_matrix(Ti.A)
+            lls.append(loglik(Ti, G))
+            acc = add(acc, G[None], Ti.A[None], (prior[i] + lls[-1])[None])
+        ll = jnp.stack(lls)
+    T_mean = eqx.tree_at(lambda t: t.A, T, acc[3] / acc[1])
+    p = jnp.exp(prior + ll - jnp.max(prior + ll))
+    return PosteriorAverage(IlluminationOperator.from_gram(T_mean, acc[2] / acc[1], smooth, ridge, absolute),
+                            p / jnp.sum(p), ll)
 
 
 def jacobian_gram(source, theta: SceneParams, uncertainty: SceneUncertainty, step: float = 0.5) -> Float[Array, "N N"]:
