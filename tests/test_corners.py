@@ -322,3 +322,20 @@ def test_location_saliency_is_an_image_of_finite_gradients():
     model, images, positions, grid = _tiny_problem(4)
     s = hc.location_saliency(model, images[0], grid)
     assert s.shape == (32, 32) and np.all(np.isfinite(s)) and float(s.max()) > 0
+
+
+def test_a_fixed_lamp_changes_only_the_lamp_and_bad_lamps_are_refused(tmp_path):
+    free = hc.random_corner_scene("T", 4, width=24, height=24)
+    fixed = hc.random_corner_scene("T", 4, width=24, height=24, lamp=(0.2, 0.65, 0.15))
+    np.testing.assert_array_equal(fixed.lamp, [0.2, 0.65, 0.15])
+    assert fixed.params == free.params and fixed.hidden == free.hidden and fixed.albedo == free.albedo
+    data = hc.generate_dataset("L", 2, seed=1, size=16, samples=2, lamp=[0.2, 0.65, 0.15], workers=1,
+                               cache=tmp_path / "lamp.npz", progress=False)
+    image, _, _ = hc.render_sample("L", 1 * 1_000_003 + 1, size=16, samples=2, lamp=(0.2, 0.65, 0.15))
+    np.testing.assert_array_equal(data.images[1], image)
+    assert not np.array_equal(image, hc.render_sample("L", 1 * 1_000_003 + 1, size=16, samples=2)[0])
+    with pytest.raises(ValueError, match="was made with"):  # a cache remembers its lamp
+        hc.generate_dataset("L", 2, seed=1, size=16, samples=2, cache=tmp_path / "lamp.npz", progress=False)
+    for bad in [(0.2, 0.0, 0.1), (0.2, 0.5), (np.nan, 0.5, 0.1)]:
+        with pytest.raises(ValueError, match="lamp must be a finite"):
+            hc.random_corner_scene("L", 0, lamp=bad)

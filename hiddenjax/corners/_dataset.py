@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 
 from .._files import atomic_path
 from ._render import DifferentialRenderer
-from ._scenes import SCENE_CLASSES, random_corner_scene
+from ._scenes import SCENE_CLASSES, _check_lamp, random_corner_scene
 
 
 class CornerDataset(NamedTuple):
@@ -40,20 +40,20 @@ class CornerDataset(NamedTuple):
         return part(slice(0, k)), part(slice(k, n))
 
 
-def render_sample(kind: str, seed: int, size: int = 128, samples: int = 16, negative: bool = False):
+def render_sample(kind: str, seed: int, size: int = 128, samples: int = 16, negative: bool = False, lamp=None):
     """`(image (size, size), position (2,), radius)` of one random scene (see the module docstring)."""
-    scene = random_corner_scene(kind, seed, width=size, height=size)
+    scene = random_corner_scene(kind, seed, width=size, height=size, lamp=lamp)
     image = DifferentialRenderer(scene).render(samples=samples, seed=seed, negative=negative)
     return image, np.asarray(scene.hidden.position, np.float32), scene.hidden.radius
 
 
 def _render_many(args):
-    kind, seeds, size, samples, negative = args
-    return [render_sample(kind, s, size, samples, negative) for s in seeds]
+    kind, seeds, size, samples, negative, lamp = args
+    return [render_sample(kind, s, size, samples, negative, lamp) for s in seeds]
 
 
 def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, samples: int = 16,
-                     negative: bool = False, workers: int | None = None, cache=None,
+                     negative: bool = False, lamp=None, workers: int | None = None, cache=None,
                      progress: bool = True) -> CornerDataset:
     """Render `count` random `kind` scenes (`'L'`, `'T'`, `'table'`) in `workers` processes.
 
@@ -62,6 +62,8 @@ def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, s
       as `1/sqrt(samples)`).
     - `negative`: include the negative terms of the exact one-bounce difference (see
       `DifferentialRenderer.render`); the default is the thesis' object-as-only-emitter model.
+    - `lamp`: a fixed `(x, y, z)` lamp position for every scene (`random_corner_scene`); by
+      default each scene draws its own.
     - `cache`: an `.npz` path: loaded when it exists with the same configuration, written otherwise.
     """
     if kind not in SCENE_CLASSES:
@@ -70,6 +72,8 @@ def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, s
         raise ValueError(f"count must be >= 1, got {count}")
     config = dict(kind=kind, count=int(count), seed=int(seed), size=int(size), samples=int(samples),
                   negative=bool(negative))
+    if lamp is not None:  # only then, so caches written before the option still match
+        config["lamp"] = _check_lamp(lamp).tolist()
     if cache is not None and Path(cache).exists():
         with np.load(cache) as f:
             stored = json.loads(str(f["config"]))
@@ -79,7 +83,7 @@ def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, s
     seeds = [seed * 1_000_003 + i for i in range(count)]
     workers = max(1, min(workers or os.cpu_count() or 1, count))
     chunk = max(1, min(16, count // (4 * workers) or 1))
-    jobs = [(kind, seeds[i:i + chunk], size, samples, negative) for i in range(0, count, chunk)]
+    jobs = [(kind, seeds[i:i + chunk], size, samples, negative, config.get("lamp")) for i in range(0, count, chunk)]
     out = []
     with tqdm(total=count, desc=f"rendering {kind} scenes", unit="scene", disable=not progress) as bar:
         if workers == 1:

@@ -161,15 +161,18 @@ def _clutter(rng, p, count) -> list:
 
 
 def random_corner_scene(kind: str = "L", seed: int = 0, *, width: int = 128, height: int = 128,
-                        max_tries: int = 50) -> CornerScene:
+                        max_tries: int = 50, lamp=None) -> CornerScene:
     """A domain-randomized corner scene of class `kind` with its hidden object out of the camera's view.
 
     Every parameter is uniform over a plausible tabletop range (see the module docstring);
     `seed` makes the draw reproducible. The hidden object is re-drawn (up to `max_tries` times)
-    until no camera pixel sees it, checked by ray casting.
+    until no camera pixel sees it, checked by ray casting. `lamp = (x, y, z)` metres fixes the
+    active lamp in the corner frame (a capture rig set up the same way at every corner) instead of
+    drawing it over the hidden corridor; everything else is drawn exactly as without it.
     """
     if kind not in SCENE_CLASSES:
         raise ValueError(f"unknown corner scene class {kind!r}; choose one of {SCENE_CLASSES}")
+    fixed_lamp = None if lamp is None else _check_lamp(lamp)
     rng = np.random.default_rng([SCENE_CLASSES.index(kind), seed])
     p = dict(
         wall_height=rng.uniform(0.15, 0.4),
@@ -196,6 +199,8 @@ def random_corner_scene(kind: str = "L", seed: int = 0, *, width: int = 128, hei
     camera = Camera.look_at(origin, target, [0, 1, 0], fov=float(rng.uniform(50, 70)), width=width, height=height)
     # The active lamp hangs over the hidden corridor so that the object is well lit (thesis 3.2.4).
     lamp = np.array([rng.uniform(0.0, 0.4), rng.uniform(0.4, 0.9), rng.uniform(0.0, 0.3)])
+    if fixed_lamp is not None:
+        lamp = fixed_lamp  # drawn first all the same, so the rest of the scene does not change
     p.update(camera_origin=origin, camera_target=target, fov=camera_fov(camera))
     scene = CornerScene(kind, p, tuple(meshes), albedo, texture, camera, lamp, 1.0, None)
     for _ in range(max_tries):
@@ -206,6 +211,14 @@ def random_corner_scene(kind: str = "L", seed: int = 0, *, width: int = 128, hei
         if not object_visible(scene):
             return scene
     raise RuntimeError(f"no hidden position out of view after {max_tries} draws (kind={kind}, seed={seed})")
+
+
+def _check_lamp(lamp) -> np.ndarray:
+    """A fixed lamp position `(3,)` metres, finite and above the floor (`y > 0`)."""
+    out = np.asarray(lamp, np.float64)
+    if out.shape != (3,) or not np.all(np.isfinite(out)) or out[1] <= 0:
+        raise ValueError(f"lamp must be a finite (x, y, z) position in metres above the floor (y > 0), got {lamp!r}")
+    return out
 
 
 def camera_fov(camera: Camera) -> float:
