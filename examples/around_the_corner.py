@@ -68,10 +68,10 @@ def main(argv=None):
     results = dict(config=dict(size=size, count=count, train=config.__dict__, render_samples=RENDER_SAMPLES, pool=pool,
                                refine_steps=refine_steps, refine_samples=refine_samples,
                                perturbation_m=PERTURBATION, lamp=args.lamp), classes={})
+    lamp_tag = "" if args.lamp is None else "_lamp" + "_".join(f"{v:g}" for v in args.lamp)  # cache file names
     logs, examples = {}, []
     for kind in args.kinds:
         t0 = time.perf_counter()
-        lamp_tag = "" if args.lamp is None else "_lamp" + "_".join(f"{v:g}" for v in args.lamp)
         data = hc.generate_dataset(kind, count, seed=0, size=size, samples=RENDER_SAMPLES, lamp=args.lamp,
                                    workers=args.workers, cache=args.out / f"data_{kind}_{size}_{count}{lamp_tag}.npz")
         t_data = time.perf_counter() - t0

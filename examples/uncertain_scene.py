@@ -122,6 +122,7 @@ def main(argv=None):
 
     # The believed pose is theta = 0; the methods that do not move the pose share it.
     T0 = embree(SceneParams.zeros())
+    naive_op = hj.solvers.IlluminationOperator.build(T0)
     thetas = unc.sample(jax.random.key(0), averaged)
     averaged_op = hj.solvers.model_average(embree_once, thetas, progress=False)
     taylor_op = hj.solvers.taylor_operator(model if args.object_rows is None else embree, SceneParams.zeros(), unc,
@@ -134,13 +135,14 @@ def main(argv=None):
                               rotation=[0.0, ROTATION * (1 if k % 2 == 0 else -1), 0.0])
         images = photos(true)
         true_op = hj.solvers.IlluminationOperator.build(embree(true))
-        naive_op = hj.solvers.IlluminationOperator.build(T0)
-        energy = sum(float(np.sum(naive_op.solve(im).objective)) for im in images)
+        naive = [naive_op.solve(im) for im in images]  # its residual sets the posterior's noise
+        energy = sum(float(np.sum(n.objective)) for n in naive)
         noise = np.sqrt(energy / (len(images) * T0.A.shape[0] * np.asarray(images[0]).shape[-1]))
         posterior = hj.solvers.posterior_average(embree_once, thetas, images, noise, progress=False)
-        estimates = {name: [op.solve(im).env for im in images] for name, op in (
-            ("true pose", true_op), ("naive (believed pose)", naive_op), ("model averaging (A.6)", averaged_op),
-            ("posterior averaging (A.6)", posterior.operator), ("Jacobian regularizer (A.9)", taylor_op))}
+        solve = lambda op: [op.solve(im).env for im in images]
+        estimates = {"true pose": solve(true_op), "naive (believed pose)": [n.env for n in naive],
+                     "model averaging (A.6)": solve(averaged_op), "posterior averaging (A.6)": solve(posterior.operator),
+                     "Jacobian regularizer (A.9)": solve(taylor_op)}
         t = time.perf_counter()
         gn = hj.solvers.solve_scene_illumination(model, images, unc, steps=steps, transport=embree, difference=0.5,
                                                  smooth=1e-3 * DEFAULT_SMOOTH, ridge=1e-3 * DEFAULT_RIDGE, tol=0.05)
