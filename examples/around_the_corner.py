@@ -14,10 +14,11 @@ checkpoints are cached in `--out`, so a second run (or an interrupted one) resum
 
 `--lamp X Y Z` fixes the active lamp at one position in the corner frame (metres) in every scene,
 training and test alike, instead of drawing it over the hidden corridor (README: that draw costs
-most of the gap to the thesis' d).
+most of the gap to the thesis' d). `--emission uniform` makes the object glow alike all over (the
+thesis' Blender emitter, no lamp) instead.
 
     python examples/around_the_corner.py [--quick] [--out DIR] [--kinds L T table] [--count N] [--steps N] [--size S]
-                                         [--lamp X Y Z]
+                                         [--lamp X Y Z] [--emission {lamp,uniform}]
 """
 
 import argparse
@@ -53,6 +54,8 @@ def main(argv=None):
     parser.add_argument("--workers", type=int, default=None, help="rendering processes (default: all cores)")
     parser.add_argument("--lamp", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                         help="fixed lamp position in metres, corner frame (default: drawn per scene)")
+    parser.add_argument("--emission", default="lamp", choices=hc.EMISSIONS,
+                        help="the object reflects the lamp (default) or glows uniformly (the thesis' emitter)")
     parser.add_argument("--test-scenes", type=int, default=None, help="new scenes refined per class (default 4)")
     args = parser.parse_args(argv)
     quick = args.quick
@@ -67,12 +70,15 @@ def main(argv=None):
 
     results = dict(config=dict(size=size, count=count, train=config.__dict__, render_samples=RENDER_SAMPLES, pool=pool,
                                refine_steps=refine_steps, refine_samples=refine_samples,
-                               perturbation_m=PERTURBATION, lamp=args.lamp), classes={})
+                               perturbation_m=PERTURBATION, lamp=args.lamp, emission=args.emission),
+                   classes={})
     lamp_tag = "" if args.lamp is None else "_lamp" + "_".join(f"{v:g}" for v in args.lamp)  # cache file names
+    lamp_tag += "" if args.emission == "lamp" else f"_{args.emission}"
     logs, examples = {}, []
     for kind in args.kinds:
         t0 = time.perf_counter()
         data = hc.generate_dataset(kind, count, seed=0, size=size, samples=RENDER_SAMPLES, lamp=args.lamp,
+                                   emission=args.emission,
                                    workers=args.workers, cache=args.out / f"data_{kind}_{size}_{count}{lamp_tag}.npz")
         t_data = time.perf_counter() - t0
         train, val = data.split(0.1)
@@ -85,7 +91,8 @@ def main(argv=None):
         table = hc.error_table(hc.localize(model, val.images).position, val.positions)
         row = dict(validation=table, dataset_s=t_data, training_s=t_train, train_count=len(train.images),
                    final_train_loss=float(np.mean(log.loss[-50:])))
-        row["refinement"], shown = refine_new_scenes(kind, model, n_test, size, refine_steps, refine_samples, args.lamp)
+        row["refinement"], shown = refine_new_scenes(kind, model, n_test, size, refine_steps, refine_samples, args.lamp,
+                                                       args.emission)
         examples += shown
         results["classes"][kind] = row
         print(f"{kind}: d = {table['d']['mean']:.2f} +- {table['d']['std']:.2f} cm on {table['count']} validation "
@@ -99,11 +106,11 @@ def main(argv=None):
     return results
 
 
-def refine_new_scenes(kind, model, n, size, steps, samples, lamp=None):
+def refine_new_scenes(kind, model, n, size, steps, samples, lamp=None, emission="lamp"):
     """CNN estimate and variational refinement on `n` scenes outside the dataset's seeds."""
     rows, shown = [], []
     for i in range(n):
-        scene = hc.random_corner_scene(kind, 10**9 + i, width=size, height=size, lamp=lamp)
+        scene = hc.random_corner_scene(kind, 10**9 + i, width=size, height=size, lamp=lamp, emission=emission)
         renderer = hc.DifferentialRenderer(scene)
         observed = renderer.render(samples=128, seed=12345)  # more samples than the refinement's renders
         truth = np.asarray(scene.hidden.position)
@@ -128,7 +135,7 @@ def refine_new_scenes(kind, model, n, size, steps, samples, lamp=None):
         if i == 0:
             # The same scene seen at 32x32 (the seed fixes everything but the resolution).
             small = hc.random_corner_scene(kind, 10**9 + i, width=min(size, SOFT_SIZE), height=min(size, SOFT_SIZE),
-                                           lamp=lamp)
+                                           lamp=lamp, emission=emission)
             b = size // min(size, SOFT_SIZE)
             soft = hc.SoftCornerRenderer.from_scene(small, angles=8, heights=2, cap=2)
             t0 = time.perf_counter()

@@ -1,5 +1,7 @@
 """Hidden objects around corners (thesis ch. 3): scenes, differential rendering, labels, CNN, refinement."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -339,3 +341,36 @@ def test_a_fixed_lamp_changes_only_the_lamp_and_bad_lamps_are_refused(tmp_path):
     for bad in [(0.2, 0.0, 0.1), (0.2, 0.5), (np.nan, 0.5, 0.1)]:
         with pytest.raises(ValueError, match="lamp must be a finite"):
             hc.random_corner_scene("L", 0, lamp=bad)
+
+
+def test_a_uniformly_glowing_object_ignores_the_lamp_and_both_renderers_agree(tmp_path):
+    """emission='uniform' (the thesis' Blender emitter): every object point has radiance rho_o/pi I."""
+    glow = hc.random_corner_scene("L", 5, width=24, height=24, emission="uniform")
+    lit = hc.random_corner_scene("L", 5, width=24, height=24)
+    assert glow.params == lit.params and glow.hidden == lit.hidden  # only how the object shines differs
+    hard = hc.DifferentialRenderer(glow).render(samples=64, seed=1)
+    moved = dataclasses.replace(glow, lamp=glow.lamp + np.array([0.1, 0.2, -0.1]))
+    np.testing.assert_array_equal(hc.DifferentialRenderer(moved).render(samples=64, seed=1), hard)
+    assert hard.min() >= 0 and hard.max() > 0
+    # The lamp lights one side of the object; glowing, the other side shines too: not the same picture.
+    shaded = hc.DifferentialRenderer(lit).render(samples=64, seed=1)
+    assert np.corrcoef(hard.ravel(), shaded.ravel())[0, 1] < 0.99
+    # Another estimator of the same image: the sigmoid-shadow quadrature in JAX.
+    hard = np.mean([hc.DifferentialRenderer(glow).render(samples=128, seed=k) for k in range(2)], 0)
+    soft = np.asarray(hc.SoftCornerRenderer.from_scene(glow, temperature=1000.0).render(jnp.asarray(glow.hidden.position)))
+    assert np.corrcoef(soft.ravel(), hard.ravel())[0, 1] > 0.98
+    assert np.linalg.norm(soft - hard) / np.linalg.norm(hard) < 0.1
+    with pytest.raises(ValueError, match="negative=True needs"):
+        hc.DifferentialRenderer(glow).render(negative=True)
+    with pytest.raises(ValueError, match="render_full path-traces the lamp-lit scene"):
+        hc.render_full(glow, with_object=True)
+    with pytest.raises(ValueError, match="unknown emission 'glow'"):
+        hc.random_corner_scene("L", 0, emission="glow")
+    with pytest.raises(ValueError, match="negative=True needs emission='lamp'"):
+        hc.generate_dataset("L", 2, negative=True, emission="uniform")
+    data = hc.generate_dataset("L", 2, seed=1, size=16, samples=2, emission="uniform", workers=1,
+                               cache=tmp_path / "glow.npz", progress=False)
+    image, _, _ = hc.render_sample("L", 1 * 1_000_003 + 1, size=16, samples=2, emission="uniform")
+    np.testing.assert_array_equal(data.images[1], image)
+    with pytest.raises(ValueError, match="was made with"):  # a cache remembers how its objects shine
+        hc.generate_dataset("L", 2, seed=1, size=16, samples=2, cache=tmp_path / "glow.npz", progress=False)

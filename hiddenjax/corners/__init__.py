@@ -1,6 +1,7 @@
 """Hidden objects around corners (thesis ch. 3): randomized scenes, differential rendering, polar labels,
 the localization CNN and its training, Gaussian read-out, variational refinement and saliency."""
 
+from ._scenes import EMISSIONS as EMISSIONS
 from ._scenes import RHO_MAX as RHO_MAX
 from ._scenes import SCENE_CLASSES as SCENE_CLASSES
 from ._scenes import CornerScene as CornerScene

@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 
 from .._files import atomic_path
 from ._render import DifferentialRenderer
-from ._scenes import SCENE_CLASSES, _check_lamp, random_corner_scene
+from ._scenes import SCENE_CLASSES, _check_emission, _check_lamp, random_corner_scene
 
 
 class CornerDataset(NamedTuple):
@@ -40,20 +40,21 @@ class CornerDataset(NamedTuple):
         return part(slice(0, k)), part(slice(k, n))
 
 
-def render_sample(kind: str, seed: int, size: int = 128, samples: int = 16, negative: bool = False, lamp=None):
+def render_sample(kind: str, seed: int, size: int = 128, samples: int = 16, negative: bool = False, lamp=None,
+                  emission: str = "lamp"):
     """`(image (size, size), position (2,), radius)` of one random scene (see the module docstring)."""
-    scene = random_corner_scene(kind, seed, width=size, height=size, lamp=lamp)
+    scene = random_corner_scene(kind, seed, width=size, height=size, lamp=lamp, emission=emission)
     image = DifferentialRenderer(scene).render(samples=samples, seed=seed, negative=negative)
     return image, np.asarray(scene.hidden.position, np.float32), scene.hidden.radius
 
 
 def _render_many(args):
-    kind, seeds, size, samples, negative, lamp = args
-    return [render_sample(kind, s, size, samples, negative, lamp) for s in seeds]
+    kind, seeds, size, samples, negative, lamp, emission = args
+    return [render_sample(kind, s, size, samples, negative, lamp, emission) for s in seeds]
 
 
 def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, samples: int = 16,
-                     negative: bool = False, lamp=None, workers: int | None = None, cache=None,
+                     negative: bool = False, lamp=None, emission: str = "lamp", workers: int | None = None, cache=None,
                      progress: bool = True) -> CornerDataset:
     """Render `count` random `kind` scenes (`'L'`, `'T'`, `'table'`) in `workers` processes.
 
@@ -64,6 +65,8 @@ def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, s
       `DifferentialRenderer.render`); the default is the thesis' object-as-only-emitter model.
     - `lamp`: a fixed `(x, y, z)` lamp position for every scene (`random_corner_scene`); by
       default each scene draws its own.
+    - `emission`: `'lamp'` (the object reflects the lamp) or `'uniform'` (it glows alike all
+      over, the thesis' Blender emitter; see `CornerScene`).
     - `cache`: an `.npz` path: loaded when it exists with the same configuration, written otherwise.
     """
     if kind not in SCENE_CLASSES:
@@ -74,6 +77,10 @@ def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, s
                   negative=bool(negative))
     if lamp is not None:  # only then, so caches written before the option still match
         config["lamp"] = _check_lamp(lamp).tolist()
+    if _check_emission(emission) != "lamp":  # likewise
+        if negative:
+            raise ValueError(f"negative=True needs emission='lamp' (the negative terms are lamp light), got {emission!r}")
+        config["emission"] = emission
     if cache is not None and Path(cache).exists():
         with np.load(cache) as f:
             stored = json.loads(str(f["config"]))
@@ -83,7 +90,8 @@ def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, s
     seeds = [seed * 1_000_003 + i for i in range(count)]
     workers = max(1, min(workers or os.cpu_count() or 1, count))
     chunk = max(1, min(16, count // (4 * workers) or 1))
-    jobs = [(kind, seeds[i:i + chunk], size, samples, negative, config.get("lamp")) for i in range(0, count, chunk)]
+    jobs = [(kind, seeds[i:i + chunk], size, samples, negative, config.get("lamp"), emission)
+            for i in range(0, count, chunk)]
     out = []
     with tqdm(total=count, desc=f"rendering {kind} scenes", unit="scene", disable=not progress) as bar:
         if workers == 1:

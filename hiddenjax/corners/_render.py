@@ -99,11 +99,16 @@ class DifferentialRenderer:
           `1/sqrt(samples)` and is independent between pixels.
         - `negative`: add the negative terms (b)-(d), making the image the exact one-bounce
           difference; the default `False` is the thesis' model, the object as the only emitter.
+          With `scene.emission == 'uniform'` every object point glows alike (no lamp; `negative`
+          then raises).
         - `pool`: candidate points drawn on the object (and in its shadow) per image.
         """
         if samples < 1:
             raise ValueError(f"samples must be >= 1, got {samples}")
         sc = self.scene
+        if negative and sc.emission != "lamp":
+            raise ValueError(f"negative=True needs the lamp-lit scene (emission='lamp'), not emission={sc.emission!r}: "
+                             "the negative terms are the lamp light the object hides and shadows")
         hidden = sc.hidden if position is None else sc.hidden.moved(position)
         rng = np.random.default_rng([seed, 0xC0])
         mesh = hidden.mesh()
@@ -114,8 +119,11 @@ class DifferentialRenderer:
         # around the object as well as by radiance (and moves smoothly when the object moves).
         order = np.argsort(np.arctan2(q[:, 2] - hidden.position[1], q[:, 0] - hidden.position[0]), kind="stable")
         q, nq = q[order] + off * nq[order], nq[order]
-        lo = _lamp_radiance(hidden.albedo, q, nq, sc.lamp, sc.intensity)
-        lo = np.where(_blocked(self.caster, q, np.broadcast_to(sc.lamp, q.shape)), 0.0, lo)
+        if sc.emission == "uniform":  # the object glows: every point of it alike
+            lo = np.full(len(q), hidden.albedo / np.pi * sc.intensity)
+        else:
+            lo = _lamp_radiance(hidden.albedo, q, nq, sc.lamp, sc.intensity)
+            lo = np.where(_blocked(self.caster, q, np.broadcast_to(sc.lamp, q.shape)), 0.0, lo)
         # (b) also counts unlit object points (they hide lit background): keep them drawable then.
         if negative:
             density = lo + (np.mean(lo) if np.any(lo > 0) else 1.0)
@@ -234,6 +242,8 @@ def render_full(scene: CornerScene, *, with_object: bool, samples: int = 64, see
     `render_full(with_object=True) - render_full(with_object=False)` is the render-twice estimate of
     the differential image.
     """
+    if scene.emission != "lamp":
+        raise ValueError(f"render_full path-traces the lamp-lit scene; it has no emission={scene.emission!r} form")
     world = scene.with_object() if with_object else scene.background()
     caster = RayCaster(world)
     nbg = len(scene.meshes)

@@ -21,6 +21,9 @@ from ..scene import Camera, Scene, Surface
 from ..transport._embree import RayCaster, pixel_centre_rays
 
 SCENE_CLASSES = ("L", "T", "table")
+# How the hidden object shines: lit by the active point lamp, or glowing uniformly (the thesis'
+# Blender emitter: "the object as an emitter without additional illumination", 3.2.1).
+EMISSIONS = ("lamp", "uniform")
 # Where a hidden object may stand (polar, about the corner): the label grid covers this range.
 RHO_MAX = 0.5
 
@@ -52,7 +55,10 @@ class CornerScene:
     `meshes` and `albedo` (one base albedo per background surface), `texture` (per surface:
     pattern id, amplitude, frequency (3,), phase), `camera`, `lamp` (3,) the position of an
     isotropic point lamp of `intensity` W/sr that lights the hidden object (the thesis' active
-    illumination), and `hidden` the `HiddenObject`.
+    illumination), `hidden` the `HiddenObject`, and `emission`: `'lamp'` (the object's radiance
+    is the lamp's light it reflects, `rho_o/pi I cos/d^2`) or `'uniform'` (every point of it glows
+    with `rho_o/pi * intensity`, as under an irradiance of `intensity` W/m^2 from all sides; the
+    lamp then lights nothing).
     """
 
     kind: str
@@ -64,6 +70,7 @@ class CornerScene:
     lamp: np.ndarray
     intensity: float
     hidden: HiddenObject
+    emission: str = "lamp"
 
     def background(self) -> Scene:
         """The scene without the hidden object (constant base albedos; textures live in `albedo_at`)."""
@@ -161,7 +168,7 @@ def _clutter(rng, p, count) -> list:
 
 
 def random_corner_scene(kind: str = "L", seed: int = 0, *, width: int = 128, height: int = 128,
-                        max_tries: int = 50, lamp=None) -> CornerScene:
+                        max_tries: int = 50, lamp=None, emission: str = "lamp") -> CornerScene:
     """A domain-randomized corner scene of class `kind` with its hidden object out of the camera's view.
 
     Every parameter is uniform over a plausible tabletop range (see the module docstring);
@@ -169,9 +176,12 @@ def random_corner_scene(kind: str = "L", seed: int = 0, *, width: int = 128, hei
     until no camera pixel sees it, checked by ray casting. `lamp = (x, y, z)` metres fixes the
     active lamp in the corner frame (a capture rig set up the same way at every corner) instead of
     drawing it over the hidden corridor; everything else is drawn exactly as without it.
+    `emission='uniform'` makes the object glow uniformly instead of reflecting the lamp
+    (`CornerScene`); the scene's geometry is the same.
     """
     if kind not in SCENE_CLASSES:
         raise ValueError(f"unknown corner scene class {kind!r}; choose one of {SCENE_CLASSES}")
+    _check_emission(emission)
     fixed_lamp = None if lamp is None else _check_lamp(lamp)
     rng = np.random.default_rng([SCENE_CLASSES.index(kind), seed])
     p = dict(
@@ -202,7 +212,7 @@ def random_corner_scene(kind: str = "L", seed: int = 0, *, width: int = 128, hei
     if fixed_lamp is not None:
         lamp = fixed_lamp  # drawn first all the same, so the rest of the scene does not change
     p.update(camera_origin=origin, camera_target=target, fov=camera_fov(camera))
-    scene = CornerScene(kind, p, tuple(meshes), albedo, texture, camera, lamp, 1.0, None)
+    scene = CornerScene(kind, p, tuple(meshes), albedo, texture, camera, lamp, 1.0, None, emission)
     for _ in range(max_tries):
         hidden = HiddenObject((0.0, 0.0), radius=float(rng.uniform(0.0225, 0.04)),
                               height=float(rng.uniform(0.08, 0.2)), albedo=float(rng.uniform(0.3, 0.95)))
@@ -219,6 +229,12 @@ def _check_lamp(lamp) -> np.ndarray:
     if out.shape != (3,) or not np.all(np.isfinite(out)) or out[1] <= 0:
         raise ValueError(f"lamp must be a finite (x, y, z) position in metres above the floor (y > 0), got {lamp!r}")
     return out
+
+
+def _check_emission(emission: str) -> str:
+    if emission not in EMISSIONS:
+        raise ValueError(f"unknown emission {emission!r}; choose one of {EMISSIONS}")
+    return emission
 
 
 def camera_fov(camera: Camera) -> float:

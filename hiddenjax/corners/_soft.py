@@ -11,7 +11,8 @@ gathers
 
 with `V_T` the soft visibility of `s` from `q` past the scene's surfaces (eq. 4.12, temperature
 `T` in 1/m; the soft edge is about `4/T` wide). The lamp's own visibility of `q` is taken as 1:
-it hangs over the open hidden corridor. As `T` grows the image tends to the Embree one (tested).
+it hangs over the open hidden corridor. With `scene.emission == 'uniform'`, `L(q) = rho_o/pi I`
+at every point. As `T` grows the image tends to the Embree one (tested).
 """
 
 import equinox as eqx
@@ -57,6 +58,7 @@ class SoftCornerRenderer(eqx.Module):
     intensity: float
     object_albedo: float
     temperature: float
+    uniform: bool = eqx.field(static=True, default=False)
 
     @classmethod
     def from_scene(cls, scene: CornerScene, *, temperature: float = 400.0, angles: int = 12, heights: int = 3,
@@ -74,7 +76,7 @@ class SoftCornerRenderer(eqx.Module):
         q, n, a = cylinder_quadrature(scene.hidden.radius, scene.hidden.height, angles, heights, cap)
         f = lambda v: jnp.asarray(v, jnp.float32)
         return cls(shadows, f(albedo), f(q), f(n), f(a), f(scene.lamp), float(scene.intensity),
-                   float(scene.hidden.albedo), float(temperature))
+                   float(scene.hidden.albedo), float(temperature), scene.emission == "uniform")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -85,7 +87,10 @@ class SoftCornerRenderer(eqx.Module):
         position = jnp.asarray(position, jnp.float32)
         q = self.local_points + jnp.stack([position[0], 0.0, position[1]])[None]
         nq = self.local_normals
-        lit = shading(q, nq, self.object_albedo, self.lamp, self.intensity)  # the lamp-lit radiance L(q)
+        if self.uniform:
+            lit = jnp.full(len(q), self.object_albedo / jnp.pi * self.intensity)
+        else:
+            lit = shading(q, nq, self.object_albedo, self.lamp, self.intensity)  # the lamp-lit radiance L(q)
         sh = self.shadows
 
         def one(args):
