@@ -72,20 +72,20 @@ def main(argv=None):
                                refine_steps=refine_steps, refine_samples=refine_samples,
                                perturbation_m=PERTURBATION, lamp=args.lamp, emission=args.emission),
                    classes={})
-    lamp_tag = "" if args.lamp is None else "_lamp" + "_".join(f"{v:g}" for v in args.lamp)  # cache file names
-    lamp_tag += "" if args.emission == "lamp" else f"_{args.emission}"
+    config_tag = "" if args.lamp is None else "_lamp" + "_".join(f"{v:g}" for v in args.lamp)  # cache and checkpoint names
+    config_tag += "" if args.emission == "lamp" else f"_{args.emission}"
     logs, examples = {}, []
     for kind in args.kinds:
         t0 = time.perf_counter()
         data = hc.generate_dataset(kind, count, seed=0, size=size, samples=RENDER_SAMPLES, lamp=args.lamp,
                                    emission=args.emission,
-                                   workers=args.workers, cache=args.out / f"data_{kind}_{size}_{count}{lamp_tag}.npz")
+                                   workers=args.workers, cache=args.out / f"data_{kind}_{size}_{count}{config_tag}.npz")
         t_data = time.perf_counter() - t0
         train, val = data.split(0.1)
         model = hc.CornerNet(jax.random.key(0), size=size, pool=pool, channels=(16, 32, 32), hidden=128)
         t0 = time.perf_counter()
         model, log = hc.train(model, train.images, train.positions, config, validation=(val.images, val.positions),
-                              checkpoint=args.out / f"cnn_{kind}_{size}{lamp_tag}.eqx")
+                              checkpoint=args.out / f"cnn_{kind}_{size}{config_tag}.eqx")
         t_train = time.perf_counter() - t0
         logs[kind] = log
         table = hc.error_table(hc.localize(model, val.images).position, val.positions)
