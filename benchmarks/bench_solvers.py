@@ -57,7 +57,7 @@ def main(argv=None):
     rows = Table()
 
     # 1. one exact non-negative solve, forming A^T A included (compiled once beforehand)
-    solve = jax.jit(lambda T, y: hj.solve_illumination(T, y))
+    solve = jax.jit(lambda T, y: hj.solve_illumination(T, y, prior="l2"))
     solve(T, photo * 0.9)  # compile
     exact, t_exact = timed(solve, T, photo, repeat=3)
     e_exact = hj.metrics.env_errors(np.asarray(exact.env), truth)
@@ -71,7 +71,7 @@ def main(argv=None):
                  f"{t_dense / t_gram:.1f}x (zero column blocks skipped)"))
 
     # 2. many images with one factorization, batches of 64
-    op = hj.solvers.IlluminationOperator.build(T)
+    op = hj.solvers.IlluminationOperator.build(T, prior="l2")
     rng = np.random.default_rng(0)
     batch = jnp.asarray(photo[None] * (1 + 0.05 * rng.standard_normal((64,) + photo.shape)), jnp.float32)
     single = jax.jit(lambda op, y: op.solve(y))

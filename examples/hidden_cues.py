@@ -49,7 +49,7 @@ def main(argv=None):
     gains = np.asarray(solver_cues.gain_images(lights))
     shadows = [np.asarray(T.rows_to_image(T.A[:, i * W + j])) for i, j in lights]
 
-    operator = hj.solvers.IlluminationOperator.build(T)
+    operator = hj.solvers.IlluminationOperator.build(T, prior="l2")
     estimate = np.asarray(operator.solve(photo).env)
     cues = hj.cues.LinearCues.build(T)
     cooks = np.asarray(cues.cooks_distance(photo))

@@ -56,7 +56,7 @@ def main(argv=None):
     photo = hj.reference_render(setup.scene, setup.camera, sky, samples=64 if args.quick else 512,
                                 pixel_samples=1 if args.quick else 4, seed=1)
     mask = T.mask
-    default = hj.solvers.IlluminationOperator.build(T)
+    default = hj.solvers.IlluminationOperator.build(T, prior="l2")
 
     rows, examples = [], {}
     for level in READ_NOISE:

@@ -45,7 +45,7 @@ def main(argv=None):
     t_ref = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    operator = hj.solvers.IlluminationOperator.build(T)  # A^T A formed once for both solves
+    operator = hj.solvers.IlluminationOperator.build(T, prior="l2")  # A^T A formed once for both solves
     solution = operator.solve(reference)
     estimate = np.asarray(solution.env)
     t_solve = time.perf_counter() - t0

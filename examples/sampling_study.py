@@ -44,7 +44,7 @@ def build_and_solve(setup, grid, photo, samples, pixel_samples):
     T = hj.transport_matrix(setup.scene, setup.camera, grid, samples=samples, pixel_samples=pixel_samples,
                             progress=False)
     t_build = time.perf_counter() - t0
-    solve = jax.jit(lambda T, y: hj.solve_illumination(T, y).env)
+    solve = jax.jit(lambda T, y: hj.solve_illumination(T, y, prior="l2").env)
     jax.block_until_ready(solve(T, photo))
     t0 = time.perf_counter()
     env = np.asarray(jax.block_until_ready(solve(T, photo)))

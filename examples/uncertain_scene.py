@@ -122,7 +122,7 @@ def main(argv=None):
 
     # The believed pose is theta = 0; the methods that do not move the pose share it.
     T0 = embree(SceneParams.zeros())
-    naive_op = hj.solvers.IlluminationOperator.build(T0)
+    naive_op = hj.solvers.IlluminationOperator.build(T0, prior="l2")
     thetas = unc.sample(jax.random.key(0), averaged)
     averaged_op = hj.solvers.model_average(embree_once, thetas, progress=False)
     taylor_op = hj.solvers.taylor_operator(model if args.object_rows is None else embree, SceneParams.zeros(), unc,
@@ -134,7 +134,7 @@ def main(argv=None):
         true = SceneParams.of(translation=[TRANSLATION * np.cos(angle), 0.0, TRANSLATION * np.sin(angle)],
                               rotation=[0.0, ROTATION * (1 if k % 2 == 0 else -1), 0.0])
         images = photos(true)
-        true_op = hj.solvers.IlluminationOperator.build(embree(true))
+        true_op = hj.solvers.IlluminationOperator.build(embree(true), prior="l2")
         naive = [naive_op.solve(im) for im in images]  # its residual sets the posterior's noise
         energy = sum(float(np.sum(n.objective)) for n in naive)
         noise = np.sqrt(energy / (len(images) * T0.A.shape[0] * np.asarray(images[0]).shape[-1]))
@@ -147,7 +147,7 @@ def main(argv=None):
         gn = hj.solvers.solve_scene_illumination(model, images, unc, steps=steps, transport=embree, difference=0.5,
                                                  smooth=1e-3 * DEFAULT_SMOOTH, ridge=1e-3 * DEFAULT_RIDGE, tol=0.05)
         gn_seconds = time.perf_counter() - t
-        found_op = hj.solvers.IlluminationOperator.build(embree(gn.theta))
+        found_op = hj.solvers.IlluminationOperator.build(embree(gn.theta), prior="l2")
         estimates["Gauss-Newton pose (A.10)"] = [found_op.solve(im).env for im in images]
         history = np.asarray(jax.vmap(lambda th: th.flat())(gn.theta_history))
         err = history - np.asarray(true.flat())[None]

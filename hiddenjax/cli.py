@@ -1,7 +1,8 @@
 """The `hiddenjax` command: build a transport matrix, solve for the light, render, map the cues, demo.
 
     hiddenjax transport SCENE.toml -o A.npz
-    hiddenjax solve A.npz photo.exr -o env.exr [--png env.png] [--smooth S] [--ridge R] [--signed]
+    hiddenjax solve A.npz photo.exr -o env.exr [--png env.png] [--prior l2|tv|sunsky] [--smooth S] [--ridge R]
+                    [--signed]
     hiddenjax render A.npz env.exr -o image.exr
     hiddenjax cues A.npz [--image photo.exr] -o cues/
     hiddenjax demo [--quick] [--out DIR]
@@ -23,9 +24,10 @@ from . import cues as _cues
 from . import io
 from . import metrics
 from .scene import EnvGrid, object_on_plane, procedural_sky
-from .solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator
+from .solvers import DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior
 from .transport import TransportMatrix, reference_render, render, transport_matrix
 
+PRIORS = ("l2", "tv", "sunsky")
 IMAGE_HELP = "EXR or Radiance HDR (linear), or 8/16-bit PNG/TIFF/JPEG (see --srgb)"
 
 
@@ -102,7 +104,16 @@ def solve(args) -> dict:
     T = _load_matrix(args.matrix)
     image = _load_photo(args.image, T, args.srgb)
     t0 = time.perf_counter()
-    operator = IlluminationOperator.build(T, args.smooth, args.ridge, args.absolute)
+    if args.prior not in (None, "l2") and (args.smooth is not None or args.ridge is not None or args.absolute):
+        raise ValueError(f"--smooth/--ridge/--absolute are the l2 prior's weights; drop them or use --prior l2 "
+                         f"(got --prior {args.prior})")
+    prior = args.prior
+    if prior == "l2" or (prior is None and (args.smooth is not None or args.ridge is not None or args.absolute)):
+        prior = L2Prior(DEFAULT_SMOOTH if args.smooth is None else args.smooth,
+                        DEFAULT_RIDGE if args.ridge is None else args.ridge, args.absolute)
+    if args.signed and as_prior(prior).name == "sunsky":
+        raise ValueError("--prior sunsky solves for light >= 0; use --prior l2 or tv with --signed")
+    operator = IlluminationOperator.build(T, prior=prior)
     solution = operator.solve(image, nonneg=not args.signed, throw=False)
     env = np.asarray(solution.env)
     seconds = time.perf_counter() - t0
@@ -116,8 +127,20 @@ def solve(args) -> dict:
         io.write_png(png, env)
     if kkt > 1e-3:
         print(f"warning: the solve did not reach its optimality conditions (KKT residual {kkt:.2g})", file=sys.stderr)
-    print(f"wrote {out}: {T.grid.height}x{T.grid.width} env map, {seconds:.2f} s, KKT residual {kkt:.1e}")
-    return dict(seconds=seconds, kkt_residual=kkt)
+    print(f"wrote {out}: {T.grid.height}x{T.grid.width} env map ({type(operator.prior).__name__}), {seconds:.2f} s, "
+          f"KKT residual {kkt:.1e}")
+    summary = dict(seconds=seconds, kkt_residual=kkt, prior=type(operator.prior).__name__)
+    if solution.sources is not None:
+        src = solution.sources
+        active = np.asarray(src.active)
+        degrees = np.degrees(np.asarray(src.angles))[active]
+        power = np.asarray(src.power)[active]
+        std = np.degrees(np.asarray(src.angle_std))[active]
+        for (theta, phi), p, s in zip(degrees, power, std):
+            print(f"source at theta {theta:.2f} deg, phi {phi:.2f} deg (+- {s:.2f} deg), power {np.round(p, 4).tolist()}")
+        summary["sources"] = [dict(theta_deg=float(a[0]), phi_deg=float(a[1]), angle_std_deg=float(s),
+                                   power=np.atleast_1d(p).tolist()) for a, p, s in zip(degrees, power, std)]
+    return summary
 
 
 def render_image(args) -> dict:
@@ -238,16 +261,20 @@ def _parser() -> argparse.ArgumentParser:
     def photo_options(p):
         p.add_argument("--srgb", action="store_true", help="linearize 8/16-bit images from sRGB")
 
-    p = sub.add_parser("solve", help="recover the environment map from one photo (eq. 5.3)",
-                       description="Recover the environment map x >= 0 (or signed, --signed) from one photo: "
-                                   "min ||Ax-y||^2 + smooth ||Dx||^2 + ridge ||x||^2 (weights relative to mean diag A^T A).")
+    p = sub.add_parser("solve", help="recover the environment map from one photo",
+                       description="Recover the environment map x >= 0 (or signed, --signed) from one photo under a "
+                                   "prior: l2 is min ||Ax-y||^2 + smooth ||Dx||^2 + ridge ||x||^2 (eq. 5.3, weights "
+                                   "relative to mean diag A^T A); tv and sunsky are described in the docs.")
     p.add_argument("matrix", help="transport matrix .npz (hiddenjax transport)")
     p.add_argument("image", help="the photo: " + IMAGE_HELP)
     p.add_argument("-o", "--output", required=True, help="output env map, .exr or .hdr")
     p.add_argument("--png", help="also write a tone-mapped PNG of the map")
-    p.add_argument("--smooth", type=float, default=DEFAULT_SMOOTH, help=f"smoothness weight (default {DEFAULT_SMOOTH})")
-    p.add_argument("--ridge", type=float, default=DEFAULT_RIDGE, help=f"ridge weight (default {DEFAULT_RIDGE})")
-    p.add_argument("--absolute", action="store_true", help="weights are absolute, not relative")
+    p.add_argument("--prior", choices=PRIORS, default=None,
+                   help=f"l2 (eq. 5.3), tv (total variation on the sphere), sunsky (compact sources + smooth sky); "
+                        f"default {DEFAULT_PRIOR}, or l2 when --smooth/--ridge are given")
+    p.add_argument("--smooth", type=float, default=None, help=f"the l2 prior's smoothness weight (default {DEFAULT_SMOOTH})")
+    p.add_argument("--ridge", type=float, default=None, help=f"the l2 prior's ridge weight (default {DEFAULT_RIDGE})")
+    p.add_argument("--absolute", action="store_true", help="--smooth/--ridge are absolute, not relative")
     p.add_argument("--signed", action="store_true", help="no x >= 0 (a differential map from subtracted frames)")
     photo_options(p)
     p.set_defaults(run=solve)

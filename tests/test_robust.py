@@ -137,7 +137,7 @@ def test_model_average_and_taylor_regularize_and_solve(problem):
     setup, grid, model, sky, x = problem
     unc = SceneUncertainty.of(translation=[2 * MM, 0.0, 2 * MM], rotation=[0.0, 2 * DEG, 0.0])
     T0 = _embree(setup, model, SceneParams.zeros())
-    plain = hj.solvers.IlluminationOperator.build(T0)
+    plain = hj.solvers.IlluminationOperator.build(T0, prior="l2")
     taylor = hj.solvers.taylor_operator(model, SceneParams.zeros(), unc, transport=T0)
     extra = np.asarray(taylor.B - plain.B)
     assert np.allclose(extra, extra.T, atol=1e-6 * np.abs(extra).max())
@@ -170,7 +170,7 @@ def test_posterior_average_is_a_one_pass_weighted_model_average(problem):
     noise = 0.01  # energies 24-27 differ by 0.1-0.6: weights from ~1 to ~1e-700
     fit = hj.solvers.posterior_average(build, thetas, photos, noise, progress=False)
     energies = np.array([sum(float(jnp.sum(hj.solvers.IlluminationOperator.build(build(
-        jax.tree_util.tree_map(lambda a: a[i], thetas))).solve(im).objective)) for im in photos) for i in range(4)])
+        jax.tree_util.tree_map(lambda a: a[i], thetas)), prior="l2").solve(im).objective)) for im in photos) for i in range(4)])
     expected = np.exp(-(energies - energies.min()) / (2 * noise**2))
     assert np.allclose(np.asarray(fit.log_likelihood), -energies / (2 * noise**2), rtol=1e-4)
     assert np.allclose(np.asarray(fit.weights), expected / expected.sum(), atol=1e-4)
@@ -215,7 +215,7 @@ def test_gauss_newton_step_equals_finite_difference_step_and_vmaps(problem):
                         for s in (1, 2)])
     theta = SceneParams.of(translation=[0.3 * MM, 0.0, 0.2 * MM])
     T = model.transport(theta)
-    envs = jnp.stack([hj.solve_illumination(T, im).env for im in images])
+    envs = jnp.stack([hj.solve_illumination(T, im, prior="l2").env for im in images])
     step = eqx.filter_jit(hj.solvers.gauss_newton_step)
     one = step(model, theta, envs[0], images[0], unc)  # noise: the RMS residual
     noise = float(one.noise)
@@ -256,7 +256,7 @@ def test_refit_step_is_the_joint_gauss_newton_step(problem):
     scene, camera = model.perturb(setup.scene, setup.camera, true)
     image = jnp.asarray(hj.reference_render(scene, camera, sky, samples=64, pixel_samples=2, seed=1))  # RGB
     theta = SceneParams.of(translation=[0.3 * MM, 0.0, 0.2 * MM])
-    op = hj.solvers.IlluminationOperator.build(model.transport(theta))
+    op = hj.solvers.IlluminationOperator.build(model.transport(theta), prior="l2")
     env = op.solve(image).env
     step = eqx.filter_jit(hj.solvers.gauss_newton_step)
     fixed = step(model, theta, env, image, unc, noise=0.01)
@@ -274,7 +274,7 @@ def test_refit_step_is_the_joint_gauss_newton_step(problem):
     assert relrmse(batched[0], refit.step) < 1e-4
     with pytest.raises(ValueError, match="model's rows"):
         hj.solvers.gauss_newton_step(model, theta, env, image, unc, operator=hj.solvers.IlluminationOperator.build(
-            hj.transport_matrix(setup.scene, setup.camera, grid, samples=4, progress=False)))
+            hj.transport_matrix(setup.scene, setup.camera, grid, samples=4, progress=False), prior="l2"))
 
 
 def test_refit_gram_stays_accurate_with_weak_regularization(problem, getkey):
@@ -316,7 +316,7 @@ def test_scene_solve_shares_the_pose_across_lightings_and_never_increases_the_ob
     embree = lambda th: _embree(setup, model, th)  # 4 footprint samples
     fit = hj.solvers.solve_scene_illumination(model, images, unc, steps=3, transport=embree, progress=False)
     assert fit.env.shape == (2, *grid.shape, 3)
-    separate = [hj.solve_illumination(embree(fit.theta), im).env for im in images]
+    separate = [hj.solve_illumination(embree(fit.theta), im, prior="l2").env for im in images]
     assert relrmse(fit.env, jnp.stack(separate)) < 1e-4  # the stacked solve un-stacks to one map per lighting
     accepted = np.asarray(fit.rate_history) > 0
     objective = np.asarray(fit.objective_history)

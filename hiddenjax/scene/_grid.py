@@ -258,8 +258,9 @@ class EnvGrid(eqx.Module):
         cols = _overlap(self.phi_edges(), np.linspace(0, 2 * np.pi, Wf + 1))
         rows /= rows.sum(axis=1, keepdims=True)
         cols /= cols.sum(axis=1, keepdims=True)
-        out = np.einsum("ia,ab...,jb->ij...", rows, pano, cols)
-        return out.astype(np.float32)
+        # two matrix products (a three-operand einsum took 80 s for a 1024x512 panorama)
+        out = np.tensordot(rows, np.tensordot(pano, cols, axes=([1], [1])), axes=([1], [0]))
+        return np.moveaxis(out, -1, 1).astype(np.float32)
 
 
 def _overlap(coarse: np.ndarray, fine: np.ndarray) -> np.ndarray:

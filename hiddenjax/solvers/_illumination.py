@@ -4,7 +4,9 @@
 `min_x x^T B x - 2 c^T x` with `B = A^T A + ls D^T D + lr I` (eq. 5.13) and `c = A^T y`.
 """
 
+import abc
 from functools import partial
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -19,6 +21,7 @@ from ..transport import TransportMatrix
 # sun, prefer less smoothing (1e-3 gives linear SSIM 0.97 but a speckled sky).
 DEFAULT_SMOOTH = 0.03
 DEFAULT_RIDGE = 1e-4
+DEFAULT_PRIOR = "sunsky"  # the prior of solve_illumination(T, image) without weights (measured on real HDRIs)
 NOT_POSITIVE_DEFINITE = (
     "A^T A + smooth D^T D + ridge I is not positive definite in this precision: the weights are too small "
     "for the dtype, or zero (on the 32x64 teapot fixture float32 fails at a relative ridge of 1e-4 without "
@@ -57,13 +60,63 @@ class DampedNewton(eqx.Module):
     max_steps: int = eqx.field(static=True, default=20)
 
 
+class Prior(eqx.Module):
+    """A prior on the environment map: its weights are its fields (relative, DESIGN section 3).
+
+    A prior forms the normal matrix of its quadratic part once (`normal_matrix`) and solves the
+    columns `c = A^T y` of one or more images with it (`solve`). Subclasses name themselves
+    (`name`), so `solve_illumination(T, y, prior="tv")` finds them.
+    """
+
+    name: ClassVar[str] = ""
+
+    @abc.abstractmethod
+    def normal_matrix(self, Ts, gram):
+        """`(B, smooth, ridge)`: the normal matrix of the prior's quadratic part and its absolute L2 weights."""
+
+    @abc.abstractmethod
+    def solve(self, op, c, ys, nonneg: bool, solver):
+        """`(x (N[, K]), objective ([K]), kkt ([K]), steps ([K]), result ([K]), sources)` for `c = sum_v A_v^T y_v`.
+
+        `op` is the `IlluminationOperator` (its views, `B`, `factor`), `ys` the observed pixels of
+        each view's image, `(P_v[, K])`.
+        """
+
+
+class L2Prior(Prior):
+    """The thesis' prior (eq. 5.3): `smooth ||D x||^2 + ridge ||x||^2`, solved exactly.
+
+    `D` holds the unit finite differences of the grid (wrapping in longitude). The weights are
+    relative to `mean(diag(A^T A))` unless `absolute=True`.
+    """
+
+    name: ClassVar[str] = "l2"
+    smooth: float = DEFAULT_SMOOTH
+    ridge: float = DEFAULT_RIDGE
+    absolute: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        _check_weights(self.smooth, self.ridge)
+
+    def normal_matrix(self, Ts, gram):
+        ls, lr = regularization_weights(Ts, self.smooth, self.ridge, self.absolute)
+        return gram + prior_matrix(Ts[0].grid, ls, lr, Ts[0].A.dtype), ls, lr
+
+    def solve(self, op, c, ys, nonneg, solver):
+        x, grad, steps, result = _solve(op.B, op.factor, c, solver, nonneg)
+        # x^T B x - 2 c^T x + |y|^2 with B x = grad + c
+        objective = jnp.einsum("n...,n...->...", x, grad - c) + sum(jnp.sum(y * y, 0) for y in ys)
+        return x, objective, _kkt_residual(grad, c, x, nonneg), steps, result, None
+
+
 class IlluminationSolution(eqx.Module):
     """Result of `solve_illumination`.
 
     **Fields:** `env (h, w[, C])` the environment map; `objective ([C])` the value of eq. 5.3;
     `kkt_residual ([C])` `max |min(x, grad)|` relative to `max |A^T y|` (0 at the optimum; for
     `nonneg=False` the gradient norm); `steps ([C])` iterations; `result ([C])` 0 for success,
-    1 when `max_steps` ran out; `smooth`, `ridge` the absolute weights used.
+    1 when `max_steps` ran out; `smooth`, `ridge` the absolute L2 weights used (of the sky, for
+    `prior="sunsky"`); `sources` the compact sources of `prior="sunsky"` (`Sources`), else None.
     """
 
     env: Float[Array, "h w *C"]
@@ -73,6 +126,7 @@ class IlluminationSolution(eqx.Module):
     result: Int[Array, "*C"]
     smooth: Float[Array, ""]
     ridge: Float[Array, ""]
+    sources: Any = None
 
 
 def views(T) -> tuple[TransportMatrix, ...]:
@@ -149,11 +203,13 @@ def normal_matrix(T, smooth, ridge) -> Float[Array, "N N"]:
 
 
 class IlluminationOperator(eqx.Module):
-    """The normal equations of eq. 5.3 for one scene (one or several views) and weights, formed once.
+    """The normal equations of one scene (one or several views) under one prior, formed once.
 
-    `B = sum_v A_v^T A_v + ls D^T D + lr I` (eq. 5.13) and its Cholesky factor are reused by every
+    For the thesis' prior (`prior="l2"`, eq. 5.3) `B = sum_v A_v^T A_v + ls D^T D + lr I`
+    (eq. 5.13); other priors hold the normal matrix of their quadratic part (the sky's, for
+    `"sunsky"`; the ADMM system, for `"tv"`). `B` and its Cholesky factor are reused by every
     image: `op.solve(image)` for one photo, `op.solve_many(images)` for a stack (a video, several
-    lightings; faster than `jax.vmap(op.solve)`, which also works), and
+    lightings; faster than `jax.vmap(op.solve)`, which also works), and, for the L2 prior,
     `op.inverse()` for `G = B^-1 A^T`, the regularized inverse of eq. 5.9, so that the
     unconstrained estimate of a new image is the matrix product `G y`. With several views, one
     env map explains all of them (`solve` then takes one image per view).
@@ -164,15 +220,20 @@ class IlluminationOperator(eqx.Module):
     factor: Float[Array, "N N"]  # lower Cholesky factor of B
     smooth: Float[Array, ""]  # absolute weights
     ridge: Float[Array, ""]
+    prior: Prior = eqx.field(default_factory=L2Prior)
 
     @classmethod
-    def build(cls, T, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, absolute: bool = False):
-        """From a `TransportMatrix` or a sequence of them (several viewpoints)."""
+    def build(cls, T, smooth=None, ridge=None, absolute: bool = False, *, prior=None):
+        """From a `TransportMatrix` or a sequence of them (several viewpoints).
+
+        `prior`: a `Prior` or a name (`"l2"`, `"tv"`, `"sunsky"`); weights `smooth`/`ridge` alone
+        mean the L2 prior with those weights; neither gives `DEFAULT_PRIOR`.
+        """
         Ts = views(T)
-        return cls.from_gram(Ts, sum(gram_matrix(t.A) for t in Ts), smooth, ridge, absolute)
+        return cls.from_gram(Ts, sum(gram_matrix(t.A) for t in Ts), smooth, ridge, absolute, prior=prior)
 
     @classmethod
-    def from_gram(cls, T, gram, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, absolute: bool = False):
+    def from_gram(cls, T, gram, smooth=None, ridge=None, absolute: bool = False, *, prior=None):
         """With `gram (N, N)` in place of `sum_v A_v^T A_v`; the right-hand side stays `sum_v A_v^T y`.
 
         For model averaging (eq. A.6: `T` holds the mean matrix, `gram` the mean of `A_i^T A_i`)
@@ -181,16 +242,19 @@ class IlluminationOperator(eqx.Module):
         so the prior is the same one the plain solve uses.
         """
         Ts = views(T)
-        _check_weights(smooth, ridge)
-        ls, lr = regularization_weights(Ts, smooth, ridge, absolute)
-        B = gram + prior_matrix(Ts[0].grid, ls, lr, Ts[0].A.dtype)
-        return cls(Ts, B, _cholesky(B), jnp.asarray(ls), jnp.asarray(lr))
+        prior = as_prior(prior, smooth, ridge, absolute)
+        B, ls, lr = prior.normal_matrix(Ts, gram)
+        return cls(Ts, B, _cholesky(B), jnp.asarray(ls), jnp.asarray(lr), prior)
 
     def inverse(self) -> Float[Array, "N P"]:
         """`G = (A^T A + R)^-1 A^T` (eq. 5.9 with the smoothness prior); `G @ y` is the signed estimate.
 
-        With several views the columns follow the views' observed pixels in order.
+        With several views the columns follow the views' observed pixels in order. L2 prior only:
+        the other priors' estimates are not linear in `y`.
         """
+        if not isinstance(self.prior, L2Prior):
+            raise ValueError(f"inverse() is the linear estimate of the L2 prior; this operator's prior is "
+                             f"{type(self.prior).__name__}: build it with prior='l2'")
         At = jnp.concatenate([t.A.T for t in self.views], axis=1)
         return _cho_solve(self.factor, At)
 
@@ -204,15 +268,12 @@ class IlluminationOperator(eqx.Module):
         if len({y.shape[1:] for y in ys}) != 1:
             raise ValueError("all views' images must have the same number of channels")
         c = sum(transpose_times(t.A, y) for t, y in zip(self.views, ys))
-        x, grad, steps, result = _solve(self.B, self.factor, c, solver, nonneg)
-        # x^T B x - 2 c^T x + |y|^2 with B x = grad + c
-        objective = jnp.einsum("n...,n...->...", x, grad - c) + sum(jnp.sum(y * y, 0) for y in ys)
-        kkt = _kkt_residual(grad, c, x, nonneg)
+        x, objective, kkt, steps, result, sources = self.prior.solve(self, c, ys, nonneg, solver)
         if throw:
             x = eqx.error_if(x, jnp.any(result != SUCCESS), "solve_illumination: the solver ran out of max_steps "
                              "before the KKT residual met rtol; raise max_steps, or pass throw=False")
         env = x.reshape(self.views[0].grid.shape + x.shape[1:])
-        return IlluminationSolution(env, objective, kkt, steps, result, self.smooth, self.ridge)
+        return IlluminationSolution(env, objective, kkt, steps, result, self.smooth, self.ridge, sources)
 
     def solve_many(self, images, nonneg: bool = True, solver=None, throw: bool = True) -> IlluminationSolution:
         """`solve` for a stack `images (M, H, W[, C])` (a sequence of stacks, one per view): a video, lightings.
@@ -248,22 +309,28 @@ def _as_columns(stack):
 def solve_illumination(
     T: TransportMatrix,
     image,
-    smooth=DEFAULT_SMOOTH,
-    ridge=DEFAULT_RIDGE,
+    smooth=None,
+    ridge=None,
     nonneg: bool = True,
     *,
+    prior=None,
     solver: ProjectedNewton | DampedNewton | None = None,
     absolute: bool = False,
     throw: bool = True,
 ) -> IlluminationSolution:
-    """Environment map from one photo by eq. 5.3 (RGB: each channel independently, under `vmap`).
+    """Environment map from one photo (RGB: the channels as columns of one problem).
 
     **Arguments:**
     - `T`: the scene's `TransportMatrix`; `image (H, W)` or `(H, W, C)` linear radiance (only the
       pixels in `T.mask` are used). Several viewpoints: a sequence of matrices on one env grid and
       a sequence of images, one per view; one env map explains them all.
-    - `smooth`, `ridge`: weights of `||D x||^2` and `||x||^2`, relative to `mean(diag(A^T A))`
-      unless `absolute=True` (DESIGN.md section 3).
+    - `prior`: `"l2"` (eq. 5.3), `"tv"` (total variation on the sphere), `"sunsky"` (compact
+      sources plus a smooth sky), or a prior Module with its weights (`L2Prior(smooth=0.01)`,
+      `TVPrior(weight=...)`, `SunSkyPrior(...)`). Default: `DEFAULT_PRIOR` ("sunsky", the best
+      on the development HDRIs; "l2" with `nonneg=False`).
+    - `smooth`, `ridge`: the L2 prior's weights of `||D x||^2` and `||x||^2` (passing either
+      means `prior="l2"`), relative to `mean(diag(A^T A))` unless `absolute=True` (DESIGN.md
+      section 3).
     - `nonneg`: `x >= 0` (default); `False` gives the signed map for temporally subtracted frames.
     - `solver`: `ProjectedNewton()` (exact, default) or `DampedNewton()` (thesis eq. 5.7).
     - `throw`: raise if the solver did not converge; `False` reports it in `result` instead.
@@ -271,8 +338,36 @@ def solve_illumination(
     **Returns:** an `IlluminationSolution`. Pure JAX: works under `jax.jit` and `jax.vmap`. For
     many images with one `T`, build an `IlluminationOperator` once and reuse it.
     """
-    op = IlluminationOperator.build(T, smooth, ridge, absolute)
+    if prior is None and smooth is None and ridge is None and not absolute and not nonneg:
+        prior = "l2"  # a signed map (subtracted frames) has no compact non-negative sources
+    op = IlluminationOperator.build(T, smooth, ridge, absolute, prior=prior)
     return op.solve(image, nonneg=nonneg, solver=solver, throw=throw)
+
+
+def as_prior(prior=None, smooth=None, ridge=None, absolute: bool = False) -> Prior:
+    """The prior Module meant by `prior` (a Module or a name) or by L2 weights given alone.
+
+    Neither gives `DEFAULT_PRIOR`; weights beside a prior are refused (they belong in the prior).
+    """
+    if prior is None:
+        if smooth is None and ridge is None and not absolute:
+            prior = DEFAULT_PRIOR
+        else:
+            return L2Prior(DEFAULT_SMOOTH if smooth is None else smooth, DEFAULT_RIDGE if ridge is None else ridge,
+                           absolute)
+    elif smooth is not None or ridge is not None or absolute:
+        raise ValueError("smooth/ridge/absolute are the L2 prior's weights: pass them inside the prior "
+                         "(e.g. L2Prior(smooth=..., ridge=...)) instead of beside prior=")
+    if isinstance(prior, Prior):
+        return prior
+    names = {cls.name: cls for cls in _subclasses(Prior) if cls.name}
+    if not isinstance(prior, str) or prior not in names:
+        raise ValueError(f"unknown prior {prior!r}: use one of {sorted(names)} or a prior Module")
+    return names[prior]()
+
+
+def _subclasses(cls):
+    return [sub for direct in cls.__subclasses__() for sub in (direct, *_subclasses(direct))]
 
 
 def transpose_times(A: Float[Array, "P N"], y: Float[Array, "P *K"]) -> Float[Array, "N *K"]:
@@ -306,9 +401,13 @@ def _solve(B, factor, c, solver, nonneg):
     Jitted, as is `gram_matrix`: run eagerly, their loop bodies (new closures on every call) were
     compiled anew each time, and a long run of eager solves crashed when that code filled memory.
     """
+    return solve_from(B, c, _cho_solve(factor, c), solver, nonneg)
+
+
+def solve_from(B, c, unconstrained, solver, nonneg):
+    """`_solve` given the unconstrained solution `B^-1 c` (for callers that have it without `B`'s factor)."""
     if not isinstance(solver, (ProjectedNewton, DampedNewton)):
         raise ValueError(f"solver must be ProjectedNewton or DampedNewton, got {type(solver).__name__}")
-    unconstrained = _cho_solve(factor, c)
     gradient = lambda x: jnp.einsum("mn,n...->m...", B, x) - c
     if not nonneg:
         ones = jnp.ones(c.shape[1:], jnp.int32)

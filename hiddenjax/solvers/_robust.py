@@ -43,6 +43,7 @@ from ._illumination import (
     DEFAULT_RIDGE,
     DEFAULT_SMOOTH,
     IlluminationOperator,
+    L2Prior,
     _check_image,
     _as_columns,
     gram_matrix,
@@ -262,6 +263,9 @@ def gauss_newton_step(model: SceneModel, theta: SceneParams, env, image, uncerta
     else:
         Ax, J = None, jnp.asarray(jacobian)
     if operator is not None:
+        if not isinstance(operator.prior, L2Prior):
+            raise ValueError(f"gauss_newton_step refits the map with eq. 5.3: the operator's prior must be L2, got "
+                             f"{type(operator.prior).__name__} (build it with prior='l2')")
         if len(operator.views) != 1 or operator.views[0].A.shape != (y.shape[0], model.grid.size):
             raise ValueError("operator must be the one-view IlluminationOperator of a matrix on the model's rows "
                              "(build it with mask=model.mask)")

@@ -7,11 +7,12 @@ and `x^T R0 x = sum c'^2/(mu + t)^2`. The unconstrained problem is the one analy
 the non-negative solve then uses the chosen weights).
 """
 
+import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
 from ..transport import TransportMatrix
-from ._illumination import DEFAULT_RIDGE, DEFAULT_SMOOTH, _check_image, prior_matrix, regularization_weights
+from ._illumination import DEFAULT_RIDGE, DEFAULT_SMOOTH, _check_image, gram_matrix, prior_matrix, regularization_weights
 
 
 def choose_weights(
@@ -27,6 +28,9 @@ def choose_weights(
     **Arguments:** `method` "gcv" (minimize `P ||A x - y||^2 / (P - trace H)^2`) or "lcurve"
     (corner of maximum curvature of `(log ||A x - y||, log x^T R x)`); `scales` the factors tried
     (default `logspace(-4, 4, 81)`). RGB images sum the channels' criteria.
+
+    The scale returned always gives a normal matrix that factors in `T.A`'s precision: where the
+    criterion's choice does not (float32 at tiny weights), the next larger scale that does is taken.
 
     **Returns:** a dict with the chosen relative `smooth` and `ridge`, the chosen `scale`, and the
     curves (`scales`, `criterion`, `residual`, `seminorm`) for plotting.
@@ -62,6 +66,18 @@ def choose_weights(
         ddu, ddv = np.gradient(du, s), np.gradient(dv, s)
         criterion = (du * ddv - ddu * dv) / np.maximum((du**2 + dv**2) ** 1.5, 1e-300)
         best = int(np.argmax(np.abs(criterion[1:-1]))) + 1
+    # The weights must give a system the solver can factor in the matrix's own precision (float32 by
+    # default): a criterion that picks a scale too small for that moves up to the first that factors.
+    gram = gram_matrix(T.A)
+    factors = lambda t: bool(jnp.all(jnp.isfinite(jnp.linalg.cholesky(gram + prior_matrix(T.grid, ls * t, lr * t,
+                                                                                           T.A.dtype)))))
+    chosen = best
+    while chosen < len(scales) and not factors(scales[chosen]):
+        chosen += 1
+    if chosen == len(scales):
+        raise ValueError(f"no scale in {scales.min():.3g}..{scales.max():.3g} gives weights the solver can factor in "
+                         f"{T.A.dtype}: raise the scales or use float64 (jax_enable_x64)")
+    best = chosen
     scale = float(scales[best])
     return dict(smooth=smooth * scale, ridge=ridge * scale, scale=scale, method=method, scales=scales,
                 criterion=criterion, residual=residual, seminorm=seminorm)

@@ -1,0 +1,314 @@
+"""A sun plus a sky: `x = sky + sum_k s_k splat(w_k)`, compact sources at continuous directions.
+
+The sky is a smooth non-negative map under the L2 prior of eq. 5.3 (`sky`'s weights, stronger than
+the plain solve's, since the sun no longer has to fit in it); each source `k` has a direction
+`w_k = (theta_k, phi_k)` and a non-negative power `s_k` (radiance times solid angle, per channel).
+`splat(w)` spreads unit power bilinearly over the four grid cells whose centres surround `w` (as
+radiance: weight / solid angle), so the columns `A splat(w)` move continuously with `w` and a
+source between cells keeps its power and direction.
+
+For fixed directions the problem is a non-negative quadratic program in `(sky, s)`, solved exactly
+(projected Newton on the `(N + K)`-square normal matrix; its unconstrained start by block
+elimination with the sky's Cholesky factor). The directions are then moved by damped
+Gauss-Newton steps on `||A x - y||^2` with `(sky, s)` held, and the two alternate. Sources are
+added one at a time where the gradient promises the largest decrease (matching pursuit), up to
+`max_sources`, and the number kept is the one with the lowest BIC,
+`n' log(RSS_K / RSS_0) + K (2 + C) log n'`, over `n'` effective independent residuals
+(`effective_samples`): the residuals of a real photo (interreflections, the grid's
+discretization, sampling) are correlated over neighbouring pixels, and with every pixel counted as
+independent BIC keeps a source for any 0.1% drop of the residual.
+"""
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ._illumination import (
+    DEFAULT_RIDGE,
+    L2Prior,
+    Prior,
+    ProjectedNewton,
+    _cho_solve,
+    _kkt_residual,
+    prior_matrix,
+    regularization_weights,
+    solve_from,
+)
+
+SUCCESS = 0
+
+
+class Sources(eqx.Module):
+    """The compact sources of a sun + sky solve, `K = max_sources` slots of which `active` are used.
+
+    **Fields:** `angles (K, 2)` polar angle from +y and azimuth (radians, the grid's convention);
+    `directions (K, 3)` unit vectors towards the sources; `power (K[, C])` radiance integrated over
+    solid angle; `angle_std (K,)` the Gauss-Newton standard deviation of the direction (radians,
+    from the residual's variance; conditional on the sky); `active (K,)` the slots in use;
+    `bic (K + 1,)` the criterion for `0 .. K` sources.
+    """
+
+    angles: Float[Array, "K 2"]
+    directions: Float[Array, "K 3"]
+    power: Float[Array, "K *C"]
+    angle_std: Float[Array, " K"]
+    active: Bool[Array, " K"]
+    bic: Float[Array, " K1"]
+
+
+class SunSkyPrior(Prior):
+    """Compact sources at continuous directions plus a smooth sky (module doc).
+
+    **Fields:** `sky` the L2 prior of the sky (relative weights); `max_sources` the most sources
+    tried (BIC picks how many of them to keep; 0 is allowed); `refinements` alternations of the
+    linear solve and the direction steps per added source; `direction_steps` Gauss-Newton steps on
+    the directions per alternation.
+    """
+
+    name: ClassVar[str] = "sunsky"
+    sky: L2Prior = eqx.field(default_factory=lambda: L2Prior(smooth=0.1, ridge=DEFAULT_RIDGE))
+    max_sources: int = eqx.field(static=True, default=3)
+    refinements: int = eqx.field(static=True, default=6)
+    direction_steps: int = eqx.field(static=True, default=4)
+
+    def __check_init__(self):
+        if not isinstance(self.sky, L2Prior):
+            raise ValueError(f"sky must be an L2Prior, got {type(self.sky).__name__}")
+        if self.max_sources < 0:
+            raise ValueError(f"max_sources must be >= 0, got {self.max_sources}")
+
+    def normal_matrix(self, Ts, gram):
+        return self.sky.normal_matrix(Ts, gram)
+
+    def solve(self, op, c, ys, nonneg, solver):
+        if not nonneg:
+            raise ValueError("prior='sunsky' solves for non-negative light (its sources have powers >= 0); "
+                             "use prior='l2' or 'tv' for a signed map (nonneg=False)")
+        columns = c if c.ndim == 2 else c[:, None]
+        yy = sum(jnp.sum(y * y, 0) for y in ys).reshape(-1)
+        stages = _sunsky(op.B, op.factor, op.smooth, op.ridge, op.views[0].grid, columns, yy, self, solver)
+        xs, ss, angles_k, active_k, rss_k, steps, result_k = stages
+        # BIC over the effective number of independent residuals, from the sky-only fit's residual image
+        n_eff = effective_samples(op.views, ys, xs[0])
+        C = columns.shape[1]
+        bic = n_eff * jnp.log(rss_k / rss_k[0]) + jnp.sum(active_k, 1) * (2 + C) * jnp.log(n_eff)
+        best = jnp.argmin(bic)
+        x, s, angles, active, result = xs[best], ss[best], angles_k[best], active_k[best], result_k[best]
+        steps = jnp.sum(steps)
+        grid = op.views[0].grid
+        n = sum(y.shape[0] for y in ys) * C
+        S = splat(grid, angles, active)
+        total = x + S @ s
+        env = x + box_splat(grid, angles, active) @ s
+        gram_total = op.B @ total - _prior_times(grid, op.smooth, op.ridge, total)
+        rss = jnp.sum(total * (gram_total - 2 * columns), 0) + yy.reshape(-1)
+        objective = rss + jnp.sum(x * (_prior_times(grid, op.smooth, op.ridge, x)), 0) + op.ridge * jnp.sum(
+            (S @ s) ** 2, 0)
+        # KKT of the (sky, s) program at the chosen directions
+        grad_sky = gram_total + _prior_times(grid, op.smooth, op.ridge, x) - columns
+        grad_s = S.T @ (gram_total - columns) + op.ridge * (S.T @ (S @ s))
+        kkt = jnp.maximum(_kkt_residual(grad_sky, columns, x, True),
+                          jnp.max(jnp.abs(jnp.where(active[:, None], jnp.minimum(s, grad_s), 0.0)), 0)
+                          / jnp.maximum(jnp.max(jnp.abs(columns), 0), 1e-30))
+        std = _angle_std(op, grid, angles, active, s, rss, n)
+        theta, phi = angles[:, 0], angles[:, 1]
+        directions = jnp.stack([jnp.sin(phi) * jnp.sin(theta), jnp.cos(theta), -jnp.cos(phi) * jnp.sin(theta)], -1)
+        power = jnp.where(active[:, None], s, 0.0)
+        sources = Sources(angles, directions, power[:, 0] if c.ndim == 1 else power, std, active, bic)
+        squeeze = (lambda a: a[:, 0]) if c.ndim == 1 else (lambda a: a)
+        one = (lambda a: a[0]) if c.ndim == 1 else (lambda a: a)
+        steps = jnp.broadcast_to(steps, kkt.shape)
+        result = jnp.broadcast_to(result, kkt.shape)
+        return squeeze(env), one(objective), one(kkt), one(steps), one(result), sources
+
+
+def _prior_times(grid, smooth, ridge, x):
+    """`R x = smooth D^T D x + ridge x` for `x (N, ...)`."""
+    return smooth * grid.difference_gram(x) + ridge * x
+
+
+def _cell_geometry(grid, dtype):
+    H, W = grid.shape
+    omega = jnp.asarray(grid.solid_angles()[:, 0], dtype)  # per row
+    return H, W, jnp.pi / H, 2 * jnp.pi / W, omega
+
+
+def splat(grid, angles, active) -> Float[Array, "N K"]:
+    """Radiance maps of unit-power sources at `angles (K, 2)`: bilinear over the 4 surrounding cell
+    centres (longitude wraps; rows clamp at the poles), divided by the cells' solid angles. Columns
+    of inactive slots are zero. Differentiable in `angles`."""
+    H, W, h, dphi, omega = _cell_geometry(grid, angles.dtype)
+    u = jnp.clip(angles[:, 0] / h - 0.5, 0.0, H - 1.0)
+    v = angles[:, 1] / dphi - 0.5
+    i0 = jnp.clip(jnp.floor(u), 0, H - 2).astype(jnp.int32)
+    fu = u - i0
+    j0f = jnp.floor(v)
+    fv = v - j0f
+    j0 = jnp.mod(j0f.astype(jnp.int32), W)
+    rows = jnp.stack([i0, i0, i0 + 1, i0 + 1], -1)
+    cols = jnp.stack([j0, (j0 + 1) % W, j0, (j0 + 1) % W], -1)
+    weights = jnp.stack([(1 - fu) * (1 - fv), (1 - fu) * fv, fu * (1 - fv), fu * fv], -1)
+    weights = weights / omega[rows] * active[:, None]
+    K = angles.shape[0]
+    return jnp.zeros((grid.size, K), angles.dtype).at[rows * W + cols, jnp.arange(K)[:, None]].add(weights)
+
+
+def box_splat(grid, angles, active) -> Float[Array, "N K"]:
+    """Unit-power sources as the grid holds them: all power in the cell containing the direction
+    (what area-averaging a panorama with that source onto the grid gives)."""
+    H, W, h, dphi, omega = _cell_geometry(grid, angles.dtype)
+    i = jnp.clip(jnp.floor(angles[:, 0] / h), 0, H - 1).astype(jnp.int32)
+    j = jnp.mod(jnp.floor(angles[:, 1] / dphi).astype(jnp.int32), W)
+    K = angles.shape[0]
+    return jnp.zeros((grid.size, K), angles.dtype).at[i * W + j, jnp.arange(K)].add(active / omega[i])
+
+
+def _cell_angles(grid, index):
+    H, W = grid.shape
+    i, j = index // W, index % W
+    return jnp.stack([(i + 0.5) * jnp.pi / H, (j + 0.5) * 2 * jnp.pi / W]).astype(jnp.float32)
+
+
+def effective_samples(views, ys, x):
+    """Independent residuals among the observed pixels: `sum_v P_v (1 - r_h)/(1 + r_h) (1 - r_v)/(1 + r_v)`.
+
+    `r_h`, `r_v` are the lag-one correlations of the residual image `y - A x` (channel mean) between
+    horizontal and vertical neighbours that are both observed: the effective sample size of a
+    separable first-order autoregressive field. The errors of a real photo (interreflections, the
+    grid's discretization, sampling) are smooth across pixels, so each pixel is not a new datum.
+    """
+    total = 0.0
+    for t, y in zip(views, ys):
+        r = y - jnp.einsum("pn,n...->p...", t.A, x if y.ndim == 2 else x[:, 0])
+        r = r.mean(axis=1) if r.ndim == 2 else r
+        img = t.rows_to_image(r - jnp.mean(r))
+        seen = t.rows_to_image(jnp.ones_like(r)) > 0
+
+        def correlation(a, b, both):
+            num = jnp.sum(jnp.where(both, a * b, 0.0))
+            den = jnp.sqrt(jnp.sum(jnp.where(both, a * a, 0.0)) * jnp.sum(jnp.where(both, b * b, 0.0)))
+            return jnp.clip(num / jnp.maximum(den, jnp.finfo(r.dtype).tiny), 0.0, 0.99)
+
+        r_h = correlation(img[:, :-1], img[:, 1:], seen[:, :-1] & seen[:, 1:])
+        r_v = correlation(img[:-1], img[1:], seen[:-1] & seen[1:])
+        total = total + r.shape[0] * (1 - r_h) / (1 + r_h) * (1 - r_v) / (1 + r_v)
+    return jnp.maximum(total, 2.0)
+
+
+@eqx.filter_jit
+def _sunsky(B, factor, ls, lr, grid, c, yy, prior: SunSkyPrior, solver):
+    """The alternating solve for columns `c (N, C)`, one stage per number of sources `0 .. max_sources`:
+    `(sky, s, angles, active, rss, steps, result)`, each with a leading stage axis."""
+    solver = ProjectedNewton() if solver is None else solver
+    N, C = c.shape
+    Kmax = max(prior.max_sources, 1)
+    dtype = c.dtype
+    gram = lambda x: B @ x - _prior_times(grid, ls, lr, x)  # A^T A x without storing A^T A
+    diag_gram = jnp.diag(B) - jnp.diag(prior_matrix(grid, ls, lr, dtype))
+
+    def linear(angles, active):
+        """Exact (sky, s) >= 0 for fixed directions: block elimination for the start, then projected Newton.
+
+        The powers are solved in units of one cell's solid angle at the source (`s = Omega s~`), so
+        their rows of the system are scaled like the sky's (the KKT tolerance is relative to `max |c|`).
+        """
+        unit = box_splat(grid, angles, jnp.ones_like(active)).max(axis=0)  # 1 / Omega of each source's cell
+        S = splat(grid, angles, active) / unit[None, :]
+        GS = gram(S)
+        cS = S.T @ c
+        Binv_GS = _cho_solve(factor, GS)
+        # the sources' radiance maps carry the sky's ridge too (lr |S s|^2), so a source the photo
+        # cannot see gets zero power instead of a singular system
+        SS = S.T @ GS + lr * (S.T @ S) + jnp.diag(~active).astype(dtype)
+        schur = SS - GS.T @ Binv_GS
+        Binv_c = _cho_solve(factor, c)
+        s0 = jnp.linalg.solve(schur, cS - GS.T @ Binv_c)
+        x0 = Binv_c - Binv_GS @ s0
+        Baug = jnp.block([[B, GS], [GS.T, SS]])
+        caug = jnp.concatenate([c, cS * active[:, None]])
+        z, _, steps, result = solve_from(Baug, caug, jnp.concatenate([x0, s0]), solver, True)
+        return z[:N], z[N:] / unit[:, None], jnp.max(steps), jnp.max(result)
+
+    def rss_of(total):
+        return jnp.sum(total * (gram(total) - 2 * c)) + jnp.sum(yy)
+
+    def move(angles, active, x, s):
+        """Damped Gauss-Newton steps on the directions with (sky, s) held; steps clipped to half a cell."""
+        h = jnp.array([jnp.pi / grid.height, 2 * jnp.pi / grid.width], dtype)
+        total = lambda a: x + splat(grid, a, active) @ s
+        f = lambda a: rss_of(total(a))
+
+        def step(carry, _):
+            a, mu = carry
+            J = jax.jacfwd(lambda a: total(a))(a).reshape(N, C, -1)  # (N, C, 2K)
+            g = jax.grad(f)(a).reshape(-1)
+            GJ = jax.vmap(gram, in_axes=2, out_axes=2)(J)
+            H = 2 * jnp.einsum("nci,ncj->ij", J, GJ)
+            free = jnp.repeat(active, 2)
+            H = jnp.where(free[:, None] & free[None, :], H, jnp.eye(2 * Kmax, dtype=dtype))
+            g = jnp.where(free, g, 0.0)
+            d = -jnp.linalg.solve(H + mu * jnp.diag(jnp.diag(H)), g).reshape(Kmax, 2)
+            d = jnp.clip(d, -0.5 * h[None, :], 0.5 * h[None, :])
+            trial = a + d
+            trial = trial.at[:, 0].set(jnp.clip(trial[:, 0], 1e-6, jnp.pi - 1e-6))
+            better = f(trial) < f(a)
+            return (jnp.where(better, trial, a), jnp.where(better, mu / 3, mu * 4)), None
+
+        (angles, _), _ = jax.lax.scan(step, (angles, jnp.asarray(1e-3, dtype)), None, length=prior.direction_steps)
+        return angles.at[:, 1].set(jnp.mod(angles[:, 1], 2 * jnp.pi))
+
+    def stage(carry, k):
+        angles, active, x, s = carry
+        # matching pursuit: the cell where a source (free of the sky's prior) lowers ||A x - y||^2 the
+        # most, `sum_c min(g_c, 0)^2 / (A^T A)_jj` with the data gradient `g = A^T (A x - y)`; cells
+        # the photo barely sees (grazing, (A^T A)_jj < 1e-3 of the largest) are not candidates
+        grad = gram(x + splat(grid, angles, active) @ s) - c
+        gain = jnp.sum(jnp.where(grad < 0, grad**2, 0.0), 1) / jnp.maximum(diag_gram, jnp.finfo(dtype).tiny)
+        # nor the cells an active source already spreads over (two sources on one cell are one source,
+        # and their equal columns would make the system singular)
+        taken = splat(grid, angles, active) @ jnp.ones(Kmax, dtype) > 0
+        gain = jnp.where((diag_gram > 1e-3 * jnp.max(diag_gram)) & ~taken, gain, -1.0)
+        new = _cell_angles(grid, jnp.argmax(gain)).astype(dtype)
+        add = k > 0
+        slot = jnp.clip(k - 1, 0, Kmax - 1)
+        angles = jnp.where(add, angles.at[slot].set(new), angles)
+        active = jnp.where(add, active.at[slot].set(True), active)
+
+        def refine(carry, _):
+            angles, x, s, steps, result = carry
+            x, s, st, res = linear(angles, active)
+            angles = jax.lax.cond(add, lambda: move(angles, active, x, s), lambda: angles)
+            return (angles, x, s, steps + st, jnp.maximum(result, res)), None
+
+        zero = jnp.array(0)
+        (angles, _, _, steps, result), _ = jax.lax.scan(refine, (angles, x, s, zero, zero), None,
+                                                        length=prior.refinements)
+        x, s, st, res = linear(angles, active)
+        rss = jnp.maximum(rss_of(x + splat(grid, angles, active) @ s), jnp.finfo(dtype).tiny)
+        out = (x, s, angles, active, rss, steps + st, jnp.maximum(result, res))
+        return (angles, active, x, s), out
+
+    init = (jnp.zeros((Kmax, 2), dtype), jnp.zeros(Kmax, bool), jnp.zeros_like(c), jnp.zeros((Kmax, C), dtype))
+    _, stages = jax.lax.scan(stage, init, jnp.arange(prior.max_sources + 1))
+    return stages
+
+
+def _angle_std(op, grid, angles, active, s, rss, n):
+    """Gauss-Newton standard deviation of each source's direction (radians), sky and powers held."""
+    dtype = s.dtype
+    S_of = lambda a: splat(grid, a, active) @ s  # (N, C)
+    J = jax.jacfwd(S_of)(angles).reshape(grid.size, s.shape[1], -1)
+    gram = lambda x: op.B @ x - _prior_times(grid, op.smooth, op.ridge, x)
+    GJ = jax.vmap(gram, in_axes=2, out_axes=2)(J)
+    H = jnp.einsum("nci,ncj->ij", J, GJ)
+    free = jnp.repeat(active, 2)
+    H = jnp.where(free[:, None] & free[None, :], H, jnp.eye(H.shape[0], dtype=dtype))
+    dof = jnp.maximum(n - jnp.sum(active) * (2 + s.shape[1]), 1)
+    cov = (rss.sum() / dof) * jnp.linalg.inv(H)
+    var = jnp.diag(cov).reshape(-1, 2)
+    std = jnp.sqrt(jnp.maximum(var[:, 0] + jnp.sin(angles[:, 0]) ** 2 * var[:, 1], 0.0))
+    return jnp.where(active, std, 0.0)
