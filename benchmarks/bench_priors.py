@@ -5,7 +5,8 @@
 For each object (the teapot and sphere fixtures on a plane, 128x128 pixels, a 32x64 grid) and each
 development HDRI (`data_fixtures/hdri/`, real panoramas, CC0), the photo comes from the independent
 reference renderer with the 256x128 panorama (never `A x`), and the truth is the panorama
-area-averaged onto the grid. Every prior solves it (`l2`: eq. 5.3; `tv`; `sunsky`), scored with
+area-averaged onto the grid. Every prior solves it (`hdr`, the default: eq. 5.3 with a log-domain
+smoothness; `l2`: eq. 5.3 as the thesis has it; `tv`; `sunsky`), scored with
 `hj.metrics.env_errors` over the upper hemisphere, and the time of each solve (the operator
 formed once per object; compiled beforehand). For the HDRIs with a small bright sun the sun's
 direction and power are compared with the truth's brightest cell. Baselines in the same run, on
@@ -32,7 +33,7 @@ HDRI = Path(__file__).resolve().parents[1] / "data_fixtures" / "hdri"
 NAMES = ("adams_place_bridge", "dikhololo_night", "forest_slope", "immenstadter_horn", "lebombo",
          "potsdamer_platz", "studio_small_03")
 SUNS = ("immenstadter_horn", "forest_slope")  # the HDRIs with a small bright sun
-PRIORS = ("l2", "tv", "sunsky")
+PRIORS = ("hdr", "l2", "tv", "sunsky")
 
 
 def timed(fn, *args):
@@ -132,7 +133,8 @@ def main(argv=None):
             photo = hj.reference_render(setup.scene, setup.camera, pano, samples=64 if q else 256, pixel_samples=4,
                                         seed=1)
             run = {}
-            panels = [("photo", photo, "radiance"), ("truth", truth, "radiance")]
+            white = float(np.percentile(truth, 99.5))  # one tone map for the truth and every estimate
+            panels = [("photo", photo, "radiance", None), ("truth", truth, "radiance", white)]
             for prior, op in ops.items():
                 solve(op, 0.9 * photo)  # compile (once per operator)
                 sol, t = timed(solve, op, photo)
@@ -143,16 +145,15 @@ def main(argv=None):
                 if name in SUNS:
                     e["sun"] = sun_errors(grid, sol, truth)
                 run[prior] = e
-                panels.append((prior, np.asarray(sol.env), "radiance"))
+                panels.append((prior, np.asarray(sol.env), "radiance", white))
                 extra = f", sun {e['sun']['cells']:.2f} cells / power {e['sun']['power_error']:+.0%}" if "sun" in e else ""
                 rows.append((f"{obj} {name} {prior}", f"ssim_tm {e['ssim_tm']:.3f}  ssim {e['ssim']:.3f}",
                              f"relrmse {e['relrmse']:.3f}  {t:.2f} s", f"KKT {e['kkt_residual']:.0e}{extra}"))
             if name == names[0]:
                 run["baselines"] = l2_baselines(T, photo, None, run["l2"]["seconds"], rows, f"{obj} {name}")
             hj.io.contact_sheet(args.out / f"{obj}_{name}.png",
-                                [(f"{label}" if label in ("photo", "truth") else
-                                  f"{label}: tm {run[label]['ssim_tm']:.2f}", img, kind)
-                                 for label, img, kind in panels], height=160)
+                                [(label if label in ("photo", "truth") else f"{label}: tm {run[label]['ssim_tm']:.2f}",
+                                  img, kind, w) for label, img, kind, w in panels], height=160)
             results["runs"][f"{obj}/{name}"] = run
         summary = {p: dict(ssim_tm=float(np.mean([results["runs"][f"{obj}/{n}"][p]["ssim_tm"] for n in names])),
                            ssim=float(np.mean([results["runs"][f"{obj}/{n}"][p]["ssim"] for n in names])),

@@ -1,7 +1,7 @@
 """The `hiddenjax` command: build a transport matrix, solve for the light, render, map the cues, demo.
 
     hiddenjax transport SCENE.toml -o A.npz
-    hiddenjax solve A.npz photo.exr -o env.exr [--png env.png] [--prior l2|tv|sunsky] [--smooth S] [--ridge R]
+    hiddenjax solve A.npz photo.exr -o env.exr [--png env.png] [--prior hdr|l2|tv|sunsky] [--smooth S] [--ridge R]
                     [--signed]
     hiddenjax render A.npz env.exr -o image.exr
     hiddenjax cues A.npz [--image photo.exr] -o cues/
@@ -27,7 +27,7 @@ from .scene import EnvGrid, object_on_plane, procedural_sky
 from .solvers import DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior
 from .transport import TransportMatrix, reference_render, render, transport_matrix
 
-PRIORS = ("l2", "tv", "sunsky")
+PRIORS = ("hdr", "l2", "tv", "sunsky")
 IMAGE_HELP = "EXR or Radiance HDR (linear), or 8/16-bit PNG/TIFF/JPEG (see --srgb)"
 
 
@@ -270,8 +270,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="output env map, .exr or .hdr")
     p.add_argument("--png", help="also write a tone-mapped PNG of the map")
     p.add_argument("--prior", choices=PRIORS, default=None,
-                   help=f"l2 (eq. 5.3), tv (total variation on the sphere), sunsky (compact sources + smooth sky); "
-                        f"default {DEFAULT_PRIOR}, or l2 when --smooth/--ridge are given")
+                   help=f"hdr (eq. 5.3 with a log-domain smoothness), l2 (eq. 5.3), tv (total variation on the "
+                        f"sphere), sunsky (compact sources + smooth sky); default {DEFAULT_PRIOR}, or l2 when "
+                        f"--smooth/--ridge are given")
     p.add_argument("--smooth", type=float, default=None, help=f"the l2 prior's smoothness weight (default {DEFAULT_SMOOTH})")
     p.add_argument("--ridge", type=float, default=None, help=f"the l2 prior's ridge weight (default {DEFAULT_RIDGE})")
     p.add_argument("--absolute", action="store_true", help="--smooth/--ridge are absolute, not relative")

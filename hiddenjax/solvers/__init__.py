@@ -7,6 +7,7 @@ from ._illumination import DampedNewton as DampedNewton
 from ._illumination import L2Prior as L2Prior
 from ._illumination import Prior as Prior
 from ._illumination import as_prior as as_prior
+from ._illumination import hdr_prior as hdr_prior
 from ._tv import TVPrior as TVPrior
 from ._sunsky import Sources as Sources
 from ._sunsky import SunSkyPrior as SunSkyPrior

@@ -34,7 +34,6 @@ from ._illumination import (
     ProjectedNewton,
     _cho_solve,
     _kkt_residual,
-    prior_matrix,
     regularization_weights,
     solve_from,
 )
@@ -88,47 +87,42 @@ class SunSkyPrior(Prior):
         if not nonneg:
             raise ValueError("prior='sunsky' solves for non-negative light (its sources have powers >= 0); "
                              "use prior='l2' or 'tv' for a signed map (nonneg=False)")
+        solver = ProjectedNewton() if solver is None else solver
         columns = c if c.ndim == 2 else c[:, None]
+        grid = op.views[0].grid
+        B, factor, R = self.sky.reweighted(op, columns, True, solver)  # the sky's prior, HDR-aware if asked
         yy = sum(jnp.sum(y * y, 0) for y in ys).reshape(-1)
-        stages = _sunsky(op.B, op.factor, op.smooth, op.ridge, op.views[0].grid, columns, yy, self, solver)
-        xs, ss, angles_k, active_k, rss_k, steps, result_k = stages
+        xs, ss, angles_k, active_k, rss_k, steps, result_k = _sunsky(B, factor, R, op.ridge, grid, columns, yy, self, solver)
         # BIC over the effective number of independent residuals, from the sky-only fit's residual image
         n_eff = effective_samples(op.views, ys, xs[0])
         C = columns.shape[1]
         bic = n_eff * jnp.log(rss_k / rss_k[0]) + jnp.sum(active_k, 1) * (2 + C) * jnp.log(n_eff)
         best = jnp.argmin(bic)
         x, s, angles, active, result = xs[best], ss[best], angles_k[best], active_k[best], result_k[best]
-        steps = jnp.sum(steps)
-        grid = op.views[0].grid
-        n = sum(y.shape[0] for y in ys) * C
         S = splat(grid, angles, active)
         total = x + S @ s
         env = x + box_splat(grid, angles, active) @ s
-        gram_total = op.B @ total - _prior_times(grid, op.smooth, op.ridge, total)
-        rss = jnp.sum(total * (gram_total - 2 * columns), 0) + yy.reshape(-1)
-        objective = rss + jnp.sum(x * (_prior_times(grid, op.smooth, op.ridge, x)), 0) + op.ridge * jnp.sum(
-            (S @ s) ** 2, 0)
-        # KKT of the (sky, s) program at the chosen directions
-        grad_sky = gram_total + _prior_times(grid, op.smooth, op.ridge, x) - columns
-        grad_s = S.T @ (gram_total - columns) + op.ridge * (S.T @ (S @ s))
-        kkt = jnp.maximum(_kkt_residual(grad_sky, columns, x, True),
-                          jnp.max(jnp.abs(jnp.where(active[:, None], jnp.minimum(s, grad_s), 0.0)), 0)
-                          / jnp.maximum(jnp.max(jnp.abs(columns), 0), 1e-30))
-        std = _angle_std(op, grid, angles, active, s, rss, n)
+        gram_total = B @ total - R @ total
+        rss = jnp.sum(total * (gram_total - 2 * columns), 0) + yy
+        objective = rss + jnp.sum(x * (R @ x), 0) + op.ridge * jnp.sum((S @ s) ** 2, 0)
+        # KKT of the (sky, s) program at the chosen directions, the powers in units of their cell (as solved)
+        unit = box_splat(grid, angles, jnp.ones_like(active)).max(axis=0)[:, None]
+        grad_sky = gram_total + R @ x - columns
+        grad_s = (S.T @ (gram_total - columns) + op.ridge * (S.T @ (S @ s))) / unit
+        c_s = jnp.where(active[:, None], S.T @ columns / unit, 0.0)
+        scale = jnp.maximum(jnp.maximum(jnp.max(jnp.abs(columns), 0), jnp.max(jnp.abs(c_s), 0)), 1e-30)
+        kkt = jnp.maximum(jnp.max(jnp.abs(jnp.minimum(x, grad_sky)), 0),
+                          jnp.max(jnp.abs(jnp.where(active[:, None], jnp.minimum(s * unit, grad_s), 0.0)), 0)) / scale
+        std = _angle_std(B - R, grid, angles, active, s, rss, sum(y.shape[0] for y in ys) * C)
         theta, phi = angles[:, 0], angles[:, 1]
         directions = jnp.stack([jnp.sin(phi) * jnp.sin(theta), jnp.cos(theta), -jnp.cos(phi) * jnp.sin(theta)], -1)
         power = jnp.where(active[:, None], s, 0.0)
         sources = Sources(angles, directions, power[:, 0] if c.ndim == 1 else power, std, active, bic)
         squeeze = (lambda a: a[:, 0]) if c.ndim == 1 else (lambda a: a)
         one = (lambda a: a[0]) if c.ndim == 1 else (lambda a: a)
-        steps = jnp.broadcast_to(steps, kkt.shape)
+        steps = jnp.broadcast_to(jnp.sum(steps), kkt.shape)
         result = jnp.broadcast_to(result, kkt.shape)
         return squeeze(env), one(objective), one(kkt), one(steps), one(result), sources
-
-
-def _prior_times(grid, smooth, ridge, x):
-    """`R x = smooth D^T D x + ridge x` for `x (N, ...)`."""
-    return smooth * grid.difference_gram(x) + ridge * x
 
 
 def _cell_geometry(grid, dtype):
@@ -200,15 +194,16 @@ def effective_samples(views, ys, x):
 
 
 @eqx.filter_jit
-def _sunsky(B, factor, ls, lr, grid, c, yy, prior: SunSkyPrior, solver):
+def _sunsky(B, factor, R, lr, grid, c, yy, prior: SunSkyPrior, solver):
     """The alternating solve for columns `c (N, C)`, one stage per number of sources `0 .. max_sources`:
-    `(sky, s, angles, active, rss, steps, result)`, each with a leading stage axis."""
-    solver = ProjectedNewton() if solver is None else solver
+    `(sky, s, angles, active, rss, steps, result)`, each with a leading stage axis. `B = A^T A + R`
+    with `R` the sky's prior matrix (its ridge `lr` also weighs the sources' maps) and `factor` B's
+    Cholesky factor."""
     N, C = c.shape
     Kmax = max(prior.max_sources, 1)
     dtype = c.dtype
-    gram = lambda x: B @ x - _prior_times(grid, ls, lr, x)  # A^T A x without storing A^T A
-    diag_gram = jnp.diag(B) - jnp.diag(prior_matrix(grid, ls, lr, dtype))
+    gram = lambda x: B @ x - R @ x  # A^T A x without storing A^T A
+    diag_gram = jnp.diag(B) - jnp.diag(R)
 
     def linear(angles, active):
         """Exact (sky, s) >= 0 for fixed directions: block elimination for the start, then projected Newton.
@@ -297,13 +292,13 @@ def _sunsky(B, factor, ls, lr, grid, c, yy, prior: SunSkyPrior, solver):
     return stages
 
 
-def _angle_std(op, grid, angles, active, s, rss, n):
-    """Gauss-Newton standard deviation of each source's direction (radians), sky and powers held."""
+def _angle_std(gram, grid, angles, active, s, rss, n):
+    """Gauss-Newton standard deviation of each source's direction (radians), sky and powers held;
+    `gram = A^T A`."""
     dtype = s.dtype
     S_of = lambda a: splat(grid, a, active) @ s  # (N, C)
     J = jax.jacfwd(S_of)(angles).reshape(grid.size, s.shape[1], -1)
-    gram = lambda x: op.B @ x - _prior_times(grid, op.smooth, op.ridge, x)
-    GJ = jax.vmap(gram, in_axes=2, out_axes=2)(J)
+    GJ = jnp.einsum("mn,nci->mci", gram, J)
     H = jnp.einsum("nci,ncj->ij", J, GJ)
     free = jnp.repeat(active, 2)
     H = jnp.where(free[:, None] & free[None, :], H, jnp.eye(H.shape[0], dtype=dtype))

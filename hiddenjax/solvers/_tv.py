@@ -91,6 +91,9 @@ class TVPrior(Prior):
         if not isinstance(self.rho, jax.core.Tracer) and not (np.isfinite(self.rho) and self.rho > 0):
             raise ValueError(f"rho must be a finite, positive ADMM penalty, got {self.rho}")
 
+    def independent_columns(self) -> bool:
+        return True
+
     def _absolute(self, Ts):
         scale, lr = regularization_weights(Ts, 1.0, self.ridge)
         return scale, lr, self.rho * scale
