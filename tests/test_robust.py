@@ -380,21 +380,29 @@ def test_scene_solve_with_embree_differences_recovers_the_pose():
     images = [hj.reference_render(scene, camera, s, samples=128, pixel_samples=32, seed=1) for s in skies]
 
     def embree(th):
-        return model.exact_transport(setup.scene, setup.camera, th, samples=64, pixel_samples=16)
+        return in_float64(model.exact_transport(setup.scene, setup.camera, th, samples=64, pixel_samples=16))
 
-    fit = hj.solvers.solve_scene_illumination(model, images, unc, steps=4, transport=embree, difference=0.5,
-                                              smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,
-                                              ridge=1e-3 * hj.solvers.DEFAULT_RIDGE, tol=0.05, progress=False)
+    with jax.enable_x64(True):  # at weights x0.001 float32 cannot factor B reliably (condition ~1e9)
+        fit = hj.solvers.solve_scene_illumination(model, images, unc, steps=4, transport=embree, difference=0.5,
+                                                  smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,
+                                                  ridge=1e-3 * hj.solvers.DEFAULT_RIDGE, tol=0.05, progress=False)
     error = lambda th: float(np.linalg.norm(unc.whiten(th, true)))  # in standard deviations
     assert error(SceneParams.zeros()) > 1.4
     assert error(fit.theta) < 0.3, (error(fit.theta), str(fit.theta), str(true))
     # Bayesian model averaging over the believed pose, the true one and two others: the photos
     # give the true pose's sample the weight.
-    flat = jnp.stack([SceneParams.zeros().flat(), true.flat(), -true.flat(), true.flat().at[4].multiply(-1)])
-    posterior = hj.solvers.posterior_average(embree, jax.vmap(SceneParams.from_flat)(flat), images, 0.05,
-                                             smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,
-                                             ridge=1e-3 * hj.solvers.DEFAULT_RIDGE, progress=False)
-    assert int(jnp.argmax(posterior.weights)) == 1 and float(posterior.weights[1]) > 0.99, posterior.log_likelihood
+    with jax.enable_x64(True):
+        flat = jnp.stack([SceneParams.zeros().flat(), true.flat(), -true.flat(), true.flat().at[4].multiply(-1)])
+        posterior = hj.solvers.posterior_average(embree, jax.vmap(SceneParams.from_flat)(flat), images, 0.05,
+                                                 smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,
+                                                 ridge=1e-3 * hj.solvers.DEFAULT_RIDGE, progress=False)
+        assert int(jnp.argmax(posterior.weights)) == 1 and float(posterior.weights[1]) > 0.99, posterior.log_likelihood
+
+
+def in_float64(T):
+    """The same transport matrix in float64 (call under `jax.enable_x64`)."""
+    return hj.TransportMatrix(jnp.asarray(T.A, jnp.float64), jnp.asarray(T.albedo, jnp.float64), T.pixels, T.grid,
+                              T.image_shape)
 
 
 def test_object_rows_pin_the_translation_under_a_sun():
@@ -424,10 +432,12 @@ def test_object_rows_pin_the_translation_under_a_sun():
 
         T = build(SceneParams.zeros())
         assert np.array_equal(np.asarray(T.pixels), np.asarray(model.pixels))
-        op = hj.solvers.IlluminationOperator.build(T, 1e-3 * hj.solvers.DEFAULT_SMOOTH, 1e-3 * hj.solvers.DEFAULT_RIDGE)
-        x = op.solve(photo).env.reshape(grid.size, 3)
-        J = hj.solvers.transport_jacobian(build, SceneParams.zeros(), x, unc)  # 3 mm moves keep every row
-        G = np.asarray(_projected_gram(op, x, J), np.float64)
+        with jax.enable_x64(True):  # at weights x0.001 float32 cannot factor B reliably (condition ~1e9)
+            op = hj.solvers.IlluminationOperator.build(in_float64(T), 1e-3 * hj.solvers.DEFAULT_SMOOTH,
+                                                       1e-3 * hj.solvers.DEFAULT_RIDGE)
+            x = op.solve(photo).env.reshape(grid.size, 3)
+            J = hj.solvers.transport_jacobian(lambda th: in_float64(build(th)), SceneParams.zeros(), x, unc)
+            G = np.asarray(_projected_gram(op, x, J), np.float64)  # 3 mm moves keep every row
         variance[name] = np.diag(np.linalg.inv(G))[:2].sum()
     assert variance["both"] < 0.6 * variance["table"], variance
     with pytest.raises(ValueError, match="margin"):  # moved 5 cm (half its width), the teapot covers 18 table rows

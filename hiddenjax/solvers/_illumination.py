@@ -139,10 +139,12 @@ class L2Prior(Prior):
         return B, factor, R
 
     def solve(self, op, c, ys, nonneg, solver):
-        B, factor, _ = self.reweighted(op, c, nonneg, solver)
+        B, factor, R = self.reweighted(op, c, nonneg, solver)
         x, grad, steps, result = _solve(B, factor, c, solver, nonneg)
-        # x^T B x - 2 c^T x + |y|^2 with B x = grad + c
-        objective = jnp.einsum("n...,n...->...", x, grad - c) + sum(jnp.sum(y * y, 0) for y in ys)
+        # |A x - y|^2 + x^T R x from the residual itself: x^T B x - 2 c^T x + |y|^2 would lose the
+        # digits that tell two scenes' energies apart to cancellation (posterior weights use them)
+        residual = sum(jnp.sum((jnp.einsum("pn,n...->p...", t.A, x) - y) ** 2, 0) for t, y in zip(op.views, ys))
+        objective = residual + jnp.einsum("n...,n...->...", x, jnp.einsum("mn,n...->m...", R, x))
         return x, objective, _kkt_residual(grad, c, x, nonneg), steps, result, None
 
 
@@ -525,8 +527,21 @@ def solve_from(B, c, unconstrained, solver, nonneg):
 
 def _cholesky(B):
     """The lower Cholesky factor of `B`, or the clear not-positive-definite error (never NaN maps)."""
-    factor = jnp.linalg.cholesky(B)
+    factor = equilibrated_cholesky(B)
     return eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)), NOT_POSITIVE_DEFINITE)
+
+
+def equilibrated_cholesky(B):
+    """A lower Cholesky factor `L` of `B` (`B = L L^T`) by way of the unit-diagonal `S^-1 B S^-1`, `S = diag(B)^1/2`.
+
+    The same factorization, with the rounding of a well-scaled matrix (van der Sluis): the rows of an
+    environment map's normal matrix range from the sun's directions to the unseen lower hemisphere,
+    held by the prior alone, and in float32 the unscaled factorization can break down where the
+    scaled one does not. NaN where `B` is not positive definite in this precision.
+    """
+    d = jnp.sqrt(jnp.diag(B))
+    L = jnp.linalg.cholesky(B / d[:, None] / d[None, :])
+    return L * d[:, None]
 
 
 def _cho_solve(factor, rhs):
@@ -642,7 +657,7 @@ def _face_step(B, c, x, grad, free, lipschitz, capacity):
     Bs = jnp.where(valid[:, None] & valid[None, :], B[sel[:, None], sel[None, :]], jnp.eye(capacity, dtype=B.dtype))
     pick = lambda v: jnp.where(valid, v[sel], 0.0)
     xs, gs = pick(x), pick(grad)
-    factor = jax.scipy.linalg.cho_factor(Bs, lower=True)
+    factor = (equilibrated_cholesky(Bs), True)
     zs = jax.scipy.linalg.cho_solve(factor, pick(c))
     # f(xt) - f(x) = d^T Bs d + 2 gs^T d with d^T Bs d = |L^T d|^2: Bs itself is not kept (it would be
     # copied twice, for the in-place factorization and for a row-major product; L is copied once)

@@ -74,16 +74,17 @@ class TVPrior(Prior):
       works across exposures, colours and scenes.
     - `ridge`: the `||x||^2` weight, relative as in `L2Prior`.
     - `rho`: the ADMM penalty relative to `mean(diag(A^T A))`.
-    - `rtol`, `max_steps`: stop when the primal and dual residuals fall below `rtol` times the
-      iterates' norms (Boyd et al., 3.3.1).
+    - `rtol`, `max_steps`: stop when the KKT residual `max |min(x, grad)| / max |2 A^T y|` and the
+      relative splitting residual fall below `rtol` (`None`: 3e-4 in float32, where the residual of
+      the teapot's photos levels off near 1e-4, and 1e-10 in float64).
     """
 
     name: ClassVar[str] = "tv"
-    weight: float = 0.01
+    weight: float = 0.1
     ridge: float = DEFAULT_RIDGE
-    rho: float = 1.0
-    rtol: float = 1e-4
-    max_steps: int = eqx.field(static=True, default=2000)
+    rho: float = 10.0
+    rtol: float | None = None
+    max_steps: int = eqx.field(static=True, default=3000)
     relaxation: float = eqx.field(static=True, default=1.6)
 
     def __check_init__(self):
@@ -115,14 +116,11 @@ class TVPrior(Prior):
         gram_ones = op.B @ ones - (lr + rho / 2) * ones  # K 1 = 0
         xbar = jnp.maximum(jnp.sum(columns, axis=0) / jnp.sum(gram_ones), jnp.finfo(c.dtype).tiny)
         lt = self.weight * scale * xbar
-        x, w, u, steps, result = _admm(op.B, op.factor, grid, columns, lt, rho, nonneg, self)
-        gram_w = op.B @ w - (lr + rho / 2) * w - (rho / 2) * tv_divergence(grid, tv_gradient(grid, w))
+        x, w, u, steps, result = _admm(op.B, op.factor, grid, columns, lt, lr, rho, nonneg, self)
         tv = total_variation(grid, w)
+        gram_w = _gram(op.B, grid, lr, rho, w)
         objective = jnp.sum(w * (gram_w - 2 * columns), 0) + yy.reshape(-1) + lr * jnp.sum(w * w, 0) + lt * tv
-        # stationarity of the Lagrangian with p = rho u (|p_i| <= lt by construction), relative to max|2c|
-        grad = 2 * (gram_w + lr * w - columns) + rho * tv_divergence(grid, u)
-        violation = jnp.minimum(w, grad) if nonneg else grad
-        kkt = jnp.max(jnp.abs(violation), 0) / jnp.maximum(jnp.max(jnp.abs(2 * columns), 0), 1e-30)
+        kkt = _stationarity(op.B, grid, columns, lr, rho, w, u, nonneg)
         steps = jnp.broadcast_to(steps, kkt.shape)
         result = jnp.broadcast_to(result, kkt.shape)
         squeeze = (lambda a: a[:, 0]) if c.ndim == 1 else (lambda a: a)
@@ -130,40 +128,59 @@ class TVPrior(Prior):
         return squeeze(w), one(objective), one(kkt), one(steps), one(result), None
 
 
+def _gram(B, grid, lr, rho, w):
+    """`A^T A w` from the ADMM matrix `B = A^T A + (lr + rho/2) I + rho/2 K^T K`."""
+    return B @ w - (lr + rho / 2) * w - (rho / 2) * tv_divergence(grid, tv_gradient(grid, w))
+
+
+def _stationarity(B, grid, c, lr, rho, w, u, nonneg):
+    """Relative KKT residual `max |min(w, grad)| / max |2 c|` per column, `grad = 2 (A^T A w + lr w - c) + K^T p`
+    with the dual `p = rho u` (`|p_i| <= lt` holds by construction of the z-step)."""
+    grad = 2 * (_gram(B, grid, lr, rho, w) + lr * w - c) + rho * tv_divergence(grid, u)
+    violation = jnp.minimum(w, grad) if nonneg else grad
+    return jnp.max(jnp.abs(violation), 0) / jnp.maximum(jnp.max(jnp.abs(2 * c), 0), 1e-30)
+
+
 @eqx.filter_jit
-def _admm(B, factor, grid, c, lt, rho, nonneg, prior: TVPrior):
-    """Over-relaxed scaled ADMM for columns `c (N, K)` with TV weights `lt (K,)`: `(x, w, u, steps, result)`."""
+def _admm(B, factor, grid, c, lt, lr, rho, nonneg, prior: TVPrior):
+    """Over-relaxed scaled ADMM for columns `c (N, K)` with TV weights `lt (K,)`: `(x, w, u, steps, result)`.
+
+    Stops, checked every 10 steps, when the KKT residual of every column (`_stationarity`) is below
+    `rtol` and the splitting is consistent (`||K w - z|| + ||x - w|| <= rtol (||K w|| + ||w||)`):
+    then `w` with the dual `rho u` satisfies the optimality conditions to `rtol`.
+    """
     alpha = prior.relaxation
+    rtol = prior.rtol if prior.rtol is not None else (1e-10 if c.dtype == jnp.float64 else 3e-4)
     x0 = _cho_solve(factor, c)  # the regularized unconstrained solution: the warm start
     z0, w0 = tv_gradient(grid, x0), jnp.maximum(x0, 0.0) if nonneg else x0
     threshold = (lt / rho)[None, None, :]
 
-    def residuals(x, z, w, u, v, z_old, w_old):
-        Kx = tv_gradient(grid, x)
-        primal = jnp.sqrt(jnp.sum((Kx - z) ** 2, (0, 1)) + jnp.sum((x - w) ** 2, 0))
-        dual = rho * jnp.sqrt(jnp.sum((tv_divergence(grid, z - z_old) + w - w_old) ** 2, 0))
-        size = jnp.maximum(jnp.sqrt(jnp.sum(Kx**2, (0, 1)) + jnp.sum(x**2, 0)),
-                           jnp.sqrt(jnp.sum(z**2, (0, 1)) + jnp.sum(w**2, 0)))
-        dual_size = rho * jnp.sqrt(jnp.sum((tv_divergence(grid, u) + v) ** 2, 0))
-        return jnp.all(primal <= prior.rtol * size) & jnp.all(dual <= prior.rtol * jnp.maximum(dual_size, 1e-30))
+    def converged(x, z, w, u):
+        Kw = tv_gradient(grid, w)
+        split = jnp.sqrt(jnp.sum((Kw - z) ** 2, (0, 1))) + jnp.sqrt(jnp.sum((x - w) ** 2, 0))
+        size = jnp.sqrt(jnp.sum(Kw**2, (0, 1))) + jnp.sqrt(jnp.sum(w**2, 0))
+        kkt = _stationarity(B, grid, c, lr, rho, w, u, nonneg)
+        return jnp.all(kkt <= rtol) & jnp.all(split <= rtol * jnp.maximum(size, jnp.finfo(c.dtype).tiny))
 
-    def body(state):
-        x, z, w, u, v, k, _ = state
+    def step(state):
+        x, z, w, u, v = state
         rhs = c + (rho / 2) * (tv_divergence(grid, z - u) + w - v)
         x = _cho_solve(factor, rhs)
         Kx_hat = alpha * tv_gradient(grid, x) + (1 - alpha) * z
         x_hat = alpha * x + (1 - alpha) * w
-        z_new = shrink(Kx_hat + u, threshold)
-        w_new = jnp.maximum(x_hat + v, 0.0) if nonneg else x_hat + v
-        u = u + Kx_hat - z_new
-        v = v + x_hat - w_new
-        done = residuals(x, z_new, w_new, u, v, z, w)
-        return x, z_new, w_new, u, v, k + 1, done
+        z = shrink(Kx_hat + u, threshold)
+        w = jnp.maximum(x_hat + v, 0.0) if nonneg else x_hat + v
+        return x, z, w, u + Kx_hat - z, v + x_hat - w
 
-    def cond(state):
-        return (~state[-1]) & (state[-2] < prior.max_steps)
+    def body(carry):
+        state, k, _ = carry
+        state = jax.lax.fori_loop(0, 10, lambda _, s: step(s), state)
+        x, z, w, u, _ = state
+        return state, k + 10, converged(x, z, w, u)
 
-    zeros = jnp.zeros_like
-    init = (x0, z0, w0, zeros(z0), zeros(x0), jnp.array(0), jnp.array(False))
-    x, z, w, u, v, steps, done = jax.lax.while_loop(cond, body, init)
+    def cond(carry):
+        return (~carry[-1]) & (carry[-2] < prior.max_steps)
+
+    init = ((x0, z0, w0, jnp.zeros_like(z0), jnp.zeros_like(x0)), jnp.array(0), jnp.array(False))
+    (x, z, w, u, v), steps, done = jax.lax.while_loop(cond, body, init)
     return x, w, u, steps, jnp.where(done, SUCCESS, MAX_STEPS)
