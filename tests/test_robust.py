@@ -386,9 +386,9 @@ def test_scene_solve_with_embree_differences_recovers_the_pose():
         fit = hj.solvers.solve_scene_illumination(model, images, unc, steps=4, transport=embree, difference=0.5,
                                                   smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,
                                                   ridge=1e-3 * hj.solvers.DEFAULT_RIDGE, tol=0.05, progress=False)
-    error = lambda th: float(np.linalg.norm(unc.whiten(th, true)))  # in standard deviations
-    assert error(SceneParams.zeros()) > 1.4
-    assert error(fit.theta) < 0.3, (error(fit.theta), str(fit.theta), str(true))
+        error = lambda th: float(np.linalg.norm(unc.whiten(th, true)))  # in standard deviations
+        assert error(SceneParams.zeros()) > 1.4
+        assert error(fit.theta) < 0.3, (error(fit.theta), str(fit.theta), str(true))
     # Bayesian model averaging over the believed pose, the true one and two others: the photos
     # give the true pose's sample the weight.
     with jax.enable_x64(True):
