@@ -99,6 +99,8 @@ def test_bad_input_one_line_nonzero_no_output(built, args, words):
 def test_usage_errors_exit_2_with_help_hint(built):
     proc = run("solve", "A.npz", cwd=built)
     assert proc.returncode == 2 and "--help" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    proc = run("solve", "A.npz", "photo.exr", "-o", "env.exr", "--prior", "sparse", cwd=built)
+    assert proc.returncode == 2 and "invalid choice: 'sparse'" in proc.stderr
     for command in ("transport", "solve", "render", "cues", "demo"):
         assert run(command, "--help", cwd=built).returncode == 0
 
@@ -114,7 +116,27 @@ def test_inprocess_errors(built, capsys):
     assert "neither the matrix's 8x4 grid nor a lat-long panorama" in capsys.readouterr().err
     assert main(["solve", str(built / "A.npz"), str(built / "ones.exr"), "-o", str(built / "x.hdr"), "--signed"]) == 1
     assert "signed" in capsys.readouterr().err
+    assert main(["solve", str(built / "A.npz"), str(built / "ones.exr"), "-o", str(built / "x.exr"), "--signed",
+                 "--prior", "sunsky"]) == 1
+    assert "--prior sunsky solves for light >= 0" in capsys.readouterr().err
+    assert main(["solve", str(built / "A.npz"), str(built / "ones.exr"), "-o", str(built / "x.exr"), "--prior", "tv",
+                 "--smooth", "0.1"]) == 1
+    assert "the l2 prior's weights" in capsys.readouterr().err
     assert not any(built.glob("x.*"))
+
+
+@pytest.mark.parametrize("prior", ["hdr", "l2", "tv", "sunsky"])
+def test_solve_with_each_prior(built, capsys, prior):
+    hj.io.write_exr(built / "sky.exr", np.full((16, 32, 3), 2.0, np.float32))
+    out = built / f"env_{prior}.exr"
+    assert main(["render", str(built / "A.npz"), str(built / "sky.exr"), "-o", str(built / "lit.exr")]) == 0
+    assert main(["solve", str(built / "A.npz"), str(built / "lit.exr"), "-o", str(out), "--prior", prior]) == 0
+    printed = capsys.readouterr().out
+    env = hj.io.read_exr(out)
+    T = hj.TransportMatrix.load(built / "A.npz")
+    # every prior explains the photo of a constant sky over a bare plane
+    np.testing.assert_allclose(np.asarray(hj.render(T, env)), hj.io.read_exr(built / "lit.exr"), rtol=3e-2)
+    assert {"hdr": "L2Prior", "l2": "L2Prior", "tv": "TVPrior", "sunsky": "SunSkyPrior"}[prior] in printed
 
 
 def test_demo_quick(tmp_path):

@@ -24,7 +24,6 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._illumination import (
@@ -33,12 +32,8 @@ from ._illumination import (
     Prior,
     ProjectedNewton,
     _cho_solve,
-    _kkt_residual,
-    regularization_weights,
     solve_from,
 )
-
-SUCCESS = 0
 
 
 class Sources(eqx.Module):

@@ -18,9 +18,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._illumination import DEFAULT_RIDGE, Prior, _check_weights, _cho_solve, regularization_weights
-
-SUCCESS, MAX_STEPS = 0, 1
+from ._illumination import (
+    DEFAULT_RIDGE,
+    MAX_STEPS,
+    SUCCESS,
+    Prior,
+    _check_weights,
+    _cho_solve,
+    regularization_weights,
+)
 
 
 def tv_weights(grid) -> tuple[np.ndarray, np.ndarray]:
