@@ -225,12 +225,16 @@ class EnvGrid(eqx.Module):
         out = out + jnp.roll(h, 1, axis=1) - h
         return out.reshape(x.shape) if flat else out
 
-    def difference_matrix(self, dense: bool = False):
-        """`D` as a scipy CSR matrix `((2H-1) W, N)`, or a dense numpy array for small grids."""
+    def difference_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Flat pixel indices `(first, second)` of the rows of `D`: row `e` is `x[first[e]] - x[second[e]]`."""
         H, W = self.shape
         idx = np.arange(self.size).reshape(H, W)
-        first = np.concatenate([idx[1:].ravel(), np.roll(idx, -1, axis=1).ravel()])
-        second = np.concatenate([idx[:-1].ravel(), idx.ravel()])
+        return (np.concatenate([idx[1:].ravel(), np.roll(idx, -1, axis=1).ravel()]),
+                np.concatenate([idx[:-1].ravel(), idx.ravel()]))
+
+    def difference_matrix(self, dense: bool = False):
+        """`D` as a scipy CSR matrix `((2H-1) W, N)`, or a dense numpy array for small grids."""
+        first, second = self.difference_pairs()
         rows = np.arange(first.size)
         data = np.concatenate([np.ones(first.size), -np.ones(first.size)])
         D = scipy.sparse.csr_matrix(

@@ -148,17 +148,9 @@ class L2Prior(Prior):
         return x, objective, _kkt_residual(grad, c, x, nonneg), steps, result, None
 
 
-def grid_edges(grid) -> tuple[np.ndarray, np.ndarray]:
-    """The pixel pairs `(first, second)` of the rows of `D` (`grid.difference`), each `((2H-1) W,)`."""
-    H, W = grid.shape
-    idx = np.arange(grid.size).reshape(H, W)
-    return (np.concatenate([idx[1:].ravel(), np.roll(idx, -1, axis=1).ravel()]),
-            np.concatenate([idx[:-1].ravel(), idx.ravel()]))
-
-
 def weighted_laplacian(grid, w) -> Float[Array, "N N"]:
     """`D^T diag(w) D`, `(N, N)`, assembled edge by edge (`w ((2H-1) W,)`, one weight per row of `D`)."""
-    i, j = grid_edges(grid)
+    i, j = grid.difference_pairs()
     L = jnp.zeros((grid.size, grid.size), w.dtype)
     L = L.at[i, i].add(w).at[j, j].add(w)
     return L.at[i, j].add(-w).at[j, i].add(-w)
@@ -167,7 +159,7 @@ def weighted_laplacian(grid, w) -> Float[Array, "N N"]:
 def log_domain_weights(grid, x, floor):
     """`W_e = 1 / (xbar_e + floor mean(x))^2`, scaled to mean 1, from a map `x (N[, C])` (L2Prior doc)."""
     lum = jnp.maximum(x.mean(axis=1) if x.ndim == 2 else x, 0.0)
-    i, j = grid_edges(grid)
+    i, j = grid.difference_pairs()
     w = 1.0 / (0.5 * (lum[i] + lum[j]) + floor * jnp.maximum(jnp.mean(lum), jnp.finfo(lum.dtype).tiny)) ** 2
     return w / jnp.mean(w)
 
@@ -289,7 +281,7 @@ class IlluminationOperator(eqx.Module):
     def build(cls, T, smooth=None, ridge=None, absolute: bool = False, *, prior=None):
         """From a `TransportMatrix` or a sequence of them (several viewpoints).
 
-        `prior`: a `Prior` or a name (`"l2"`, `"tv"`, `"sunsky"`); weights `smooth`/`ridge` alone
+        `prior`: a `Prior` or a name (`"hdr"`, `"l2"`, `"tv"`, `"sunsky"`); weights `smooth`/`ridge` alone
         mean the L2 prior with those weights; neither gives `DEFAULT_PRIOR`.
         """
         Ts = views(T)

@@ -101,7 +101,7 @@ class SunSkyPrior(Prior):
         rss = jnp.sum(total * (gram_total - 2 * columns), 0) + yy
         objective = rss + jnp.sum(x * (R @ x), 0) + op.ridge * jnp.sum((S @ s) ** 2, 0)
         # KKT of the (sky, s) program at the chosen directions, the powers in units of their cell (as solved)
-        unit = box_splat(grid, angles, jnp.ones_like(active)).max(axis=0)[:, None]
+        unit = cell_units(grid, angles)[:, None]
         grad_sky = gram_total + R @ x - columns
         grad_s = (S.T @ (gram_total - columns) + op.ridge * (S.T @ (S @ s))) / unit
         c_s = jnp.where(active[:, None], S.T @ columns / unit, 0.0)
@@ -156,6 +156,11 @@ def box_splat(grid, angles, active) -> Float[Array, "N K"]:
     return jnp.zeros((grid.size, K), angles.dtype).at[i * W + j, jnp.arange(K)].add(active / omega[i])
 
 
+def cell_units(grid, angles):
+    """`1 / Omega` of the cell containing each direction `angles (K, 2)`: the powers' solving units."""
+    return box_splat(grid, angles, jnp.ones(angles.shape[0], bool)).max(axis=0)
+
+
 def _cell_angles(grid, index):
     H, W = grid.shape
     i, j = index // W, index % W
@@ -206,7 +211,7 @@ def _sunsky(B, factor, R, lr, grid, c, yy, prior: SunSkyPrior, solver):
         The powers are solved in units of one cell's solid angle at the source (`s = Omega s~`), so
         their rows of the system are scaled like the sky's (the KKT tolerance is relative to `max |c|`).
         """
-        unit = box_splat(grid, angles, jnp.ones_like(active)).max(axis=0)  # 1 / Omega of each source's cell
+        unit = cell_units(grid, angles)
         S = splat(grid, angles, active) / unit[None, :]
         GS = gram(S)
         cS = S.T @ c
