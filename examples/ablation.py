@@ -38,7 +38,7 @@ from skimage.metrics import structural_similarity
 
 import hiddenjax as hj
 
-ROWS = (  # (name, smooth, ridge, albedo weight), relative weights (DESIGN.md section 3)
+ROWS = (  # (name, smooth, ridge, albedo weight), relative weights (docs/conventions.md, "Regularization weights")
     ("none (float64)", 0.0, 1e-8, 0.0),  # float32 cannot factor A^T A + ridge I this close to singular
     ("+L2", 0.0, hj.solvers.DEFAULT_RIDGE, 0.0),
     ("+L2+smooth", hj.solvers.DEFAULT_SMOOTH, hj.solvers.DEFAULT_RIDGE, 0.0),

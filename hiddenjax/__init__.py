@@ -14,14 +14,15 @@ import jax as _jax
 if _jax.config.jax_default_matmul_precision is None:
     _jax.config.update("jax_default_matmul_precision", "float32")
 
-from . import solvers as solvers  # first: solvers and shadows import each other's modules
 from . import corners as corners
 from . import cues as cues
 from . import io as io
 from . import metrics as metrics
 from . import scene as scenes
 from . import shadows as shadows
-from .io import load_scene as load_scene
+from . import solvers as solvers
+from ._scene_file import SceneFile as SceneFile
+from ._scene_file import load_scene as load_scene
 from .scene import Camera as Camera
 from .scene import EnvGrid as EnvGrid
 from .scene import Scene as Scene

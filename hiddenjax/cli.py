@@ -25,6 +25,7 @@ from . import io
 from . import metrics
 from .scene import EnvGrid, object_on_plane, procedural_sky
 from .solvers import DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior
+from ._scene_file import load_scene
 from .transport import TransportMatrix, reference_render, render, transport_matrix
 
 PRIORS = ("hdr", "l2", "tv", "sunsky")
@@ -81,7 +82,7 @@ def _env_on_grid(env: np.ndarray, grid: EnvGrid, path) -> np.ndarray:
 def transport(args) -> dict:
     """`hiddenjax transport`: the Embree transport matrix of a scene file."""
     out = _output(args.output, (".npz",))
-    spec = io.load_scene(args.scene)
+    spec = load_scene(args.scene)
     options = dict(spec.transport)
     for key in ("samples", "pixel_samples", "seed"):
         if getattr(args, key) is not None:

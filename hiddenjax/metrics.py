@@ -1,4 +1,4 @@
-"""Environment-map error metrics, one definition everywhere (DESIGN.md section 3)."""
+"""Environment-map error metrics, one definition everywhere (docs/conventions.md, "Metrics")."""
 
 import numpy as np
 from skimage.metrics import structural_similarity

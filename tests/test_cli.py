@@ -32,10 +32,11 @@ scale = [10.0, 1.0, 10.0]
 """
 
 
-def run(*args, cwd):
+def run(*args, cwd, umask=None):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
+    preexec = None if umask is None else (lambda: os.umask(umask))
     return subprocess.run([sys.executable, "-m", "hiddenjax", *map(str, args)], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=300)
+                          capture_output=True, text=True, timeout=300, preexec_fn=preexec)
 
 
 @pytest.fixture(scope="module")
@@ -43,14 +44,19 @@ def built(tmp_path_factory):
     """A bare-plane scene file and its transport matrix, built by `hiddenjax transport`."""
     d = tmp_path_factory.mktemp("cli")
     (d / "scene.toml").write_text(SCENE)
-    proc = run("transport", "scene.toml", "-o", "A.npz", "--quiet", cwd=d)
+    proc = run("transport", "scene.toml", "-o", "A.npz", "--quiet", cwd=d, umask=0o022)
     assert proc.returncode == 0, proc.stderr
     assert "A is 120 observed pixels x 32 directions" in proc.stdout
     return d
 
 
+def test_output_files_follow_the_umask(built):
+    """Files the command writes are readable by others under umask 022 (written atomically, not 0600)."""
+    assert (built / "A.npz").stat().st_mode & 0o777 == 0o644
+
+
 def test_render_then_solve_through_the_command(built):
-    # A constant sky over a bare plane: radiance albedo * L everywhere (closed form, DESIGN.md eq. 5.1)
+    # A constant sky over a bare plane: radiance albedo * L everywhere (closed form, eq. 5.1)
     hj.io.write_exr(built / "sky.exr", np.full((16, 32, 3), 2.0, np.float32))  # a panorama: downsampled
     proc = run("render", "A.npz", "sky.exr", "-o", "image.exr", cwd=built)
     assert proc.returncode == 0, proc.stderr

@@ -91,3 +91,18 @@ def test_nan_panels_are_drawn_grey():
     for kind in ("radiance", "map", "signed"):
         p = hj.io.panel(img, kind)
         assert tuple(p[0, 0]) == (128, 128, 128) and tuple(p[1, 1]) != (128, 128, 128)
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+def test_written_files_get_the_umask_mode(tmp_path, umask):
+    """Every writer gives its file `0666 & ~umask`, as `open()` would, not mkstemp's private 0600."""
+    old = os.umask(umask)
+    try:
+        hj.io.write_exr(tmp_path / "a.exr", np.ones((4, 4), np.float32))
+        hj.io.write_hdr(tmp_path / "a.hdr", np.ones((4, 4, 3), np.float32))
+        hj.io.write_png(tmp_path / "a.png", np.ones((4, 4), np.float32))
+        hj.io.write_text(tmp_path / "a.txt", "x")
+    finally:
+        os.umask(old)
+    for name in ("a.exr", "a.hdr", "a.png", "a.txt"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o666 & ~umask, name

@@ -42,7 +42,6 @@ def test_bundled_teapot_file_is_object_on_plane():
         np.testing.assert_allclose(a.triangles, b.triangles, atol=1e-7)
     for field in ("intrinsics", "rotation", "translation"):
         np.testing.assert_allclose(getattr(f.camera, field), getattr(ref.camera, field), atol=1e-6)
-    assert hj.Scene.from_file(TEAPOT_TOML).camera.width == 128
 
 
 def test_minimal_file_defaults(tmp_path):

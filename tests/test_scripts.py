@@ -1,4 +1,4 @@
-"""Every example and benchmark runs with --quick and writes results.json (DESIGN.md section 3)."""
+"""Every example and benchmark runs with --quick and writes results.json (docs/conventions.md, "Scripts")."""
 
 import json
 import os

@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._files import atomic_path
+from ..io._files import atomic_path
 from ._render import DifferentialRenderer
 from ._scenes import SCENE_CLASSES, _check_emission, _check_lamp, random_corner_scene
 

@@ -21,7 +21,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
-from .._files import atomic_path
+from ..io._files import atomic_path
 from ._labels import PolarGrid
 from ._network import CornerNet, heatmap_loss
 

@@ -1,6 +1,6 @@
 """Discovering hidden cues (thesis ch. 6): which pixels carry the information, and how well an object sees.
 
-Relative regularization weights throughout (DESIGN.md section 3). Pure JAX, jit-compatible.
+Relative regularization weights throughout (docs/conventions.md, "Regularization weights"). Pure JAX, jit-compatible.
 """
 
 from ._linear import LinearCues as LinearCues

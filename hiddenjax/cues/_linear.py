@@ -39,7 +39,7 @@ class LinearCues(eqx.Module):
     singular (zero weights and a rank-deficient `A`).
 
     **Fields:** `T` the transport matrix; `inverse_factor (N, N)` `L^-1` with `B = L L^T`;
-    `smooth`, `ridge` the absolute weights (DESIGN.md section 3).
+    `smooth`, `ridge` the absolute weights (docs/conventions.md, "Regularization weights").
     """
 
     T: TransportMatrix
@@ -245,7 +245,7 @@ def _flat_pixels(grid, pixels):
 
 
 def leverage(T: TransportMatrix, ridge=DEFAULT_RIDGE, smooth=0.0, *, absolute: bool = False) -> Float[Array, " P"]:
-    """Leverage `h_ii` of every observed pixel, `(P,)` (eq. 6.2; relative weights, DESIGN.md section 3).
+    """Leverage `h_ii` of every observed pixel, `(P,)` (eq. 6.2; relative weights: docs/conventions.md, "Regularization weights").
 
     `T.rows_to_image(h)` shows it as an image. See `LinearCues` to compute several cues at once.
     """

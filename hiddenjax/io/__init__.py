@@ -1,4 +1,7 @@
-"""Image I/O (OpenEXR, Radiance HDR, PNG/TIFF/JPEG), scene files, contact sheets. Writes are atomic."""
+"""Image I/O (OpenEXR, Radiance HDR, PNG/TIFF/JPEG), tone mapping, contact sheets. Writes are atomic.
+
+The bottom layer of the package: it imports nothing else of hiddenjax.
+"""
 
 from ._exr import read_exr as read_exr
 from ._exr import write_exr as write_exr
@@ -13,6 +16,4 @@ from ._images import write_png as write_png
 from ._sheet import contact_sheet as contact_sheet
 from ._sheet import panel as panel
 from ._sheet import write_map as write_map
-from ._scene_file import SceneFile as SceneFile
-from ._scene_file import load_scene as load_scene
-from .._files import write_text as write_text
+from ._files import write_text as write_text

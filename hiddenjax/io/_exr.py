@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from .._files import atomic_path
+from ._files import atomic_path
 
 
 def write_exr(path, array) -> None:

@@ -5,7 +5,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .._files import atomic_path
+from ._files import atomic_path
 from ._exr import _check_image, read_exr, write_exr
 
 

@@ -1,4 +1,4 @@
-"""Pinhole camera: Mitsuba-compatible `look_at` and OpenCV `K, R, t` (DESIGN.md section 2)."""
+"""Pinhole camera: Mitsuba-compatible `look_at` and OpenCV `K, R, t` (docs/conventions.md, "Camera")."""
 
 import equinox as eqx
 import jax.numpy as jnp

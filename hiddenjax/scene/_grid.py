@@ -1,4 +1,4 @@
-"""The latitude-longitude environment grid (DESIGN.md section 2)."""
+"""The latitude-longitude environment grid (docs/conventions.md, "Environment grid")."""
 
 import equinox as eqx
 import jax.numpy as jnp

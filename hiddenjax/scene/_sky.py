@@ -20,7 +20,7 @@ def procedural_sky(
     Sky of radiance ~1 (bluer at the zenith, whiter at the horizon), a sun disk of radius
     `sun_radius_deg` at `sun = (theta, phi)` radians with radiance `sun_radiance`, `sources`
     coloured Gaussian lights (radiance 20-60, 6 deg wide) in the upper hemisphere drawn from
-    `seed`, and a dim brown ground (0.15) below the horizon. Layout as DESIGN.md section 2.
+    `seed`, and a dim brown ground (0.15) below the horizon. Layout as docs/conventions.md ("Environment grid").
     """
     rng = np.random.default_rng(seed)
     theta = (np.arange(height) + 0.5) * np.pi / height

@@ -1,4 +1,4 @@
-"""Diffuse surfaces and scenes (DESIGN.md section 2, "Surfaces")."""
+"""Diffuse surfaces and scenes (docs/conventions.md, "Surfaces")."""
 
 from collections.abc import Sequence
 from pathlib import Path
@@ -111,13 +111,6 @@ class Scene:
             if not isinstance(s, Surface):
                 raise ValueError(f"Scene takes Surface objects, got {type(s).__name__}")
         self.surfaces = surfaces
-
-    @staticmethod
-    def from_file(path):
-        """Read a TOML scene file: `SceneFile(scene, camera, grid, transport, path)` (`hj.load_scene`)."""
-        from ..io import load_scene  # the file format lives in the I/O shell, not in the core
-
-        return load_scene(path)
 
     def __iter__(self):
         return iter(self.surfaces)

@@ -13,7 +13,7 @@ cell is a 3D point, whose angle about a third edge is shifted by parallax. Stack
 projections, `A r = b` with `A[(e, k), (i, j)]` the weight of cell `(i, j)` in bin `k` of edge
 `e`: two edges give only the marginals of `r` (rank `n0 + n1 - 1`, the ghost ambiguity of
 two sources), a third adds rows that separate ghosts from sources. `r >= 0` is the exact
-non-negative ridge solution (`solvers.ProjectedNewton`).
+non-negative ridge solution (`hj.solvers.ProjectedNewton`, from the package's quadratic-program core).
 """
 
 from typing import NamedTuple, Sequence
@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..solvers._illumination import ProjectedNewton, _cholesky, _kkt_residual, _solve
+from .._qp import ProjectedNewton, _cholesky, _kkt_residual, _solve
 from ._edges import edge_angle, edge_plane_normal
 
 DEFAULT_BINS = 32

@@ -3,7 +3,7 @@
 from ._illumination import DEFAULT_RIDGE as DEFAULT_RIDGE
 from ._illumination import DEFAULT_SMOOTH as DEFAULT_SMOOTH
 from ._illumination import DEFAULT_PRIOR as DEFAULT_PRIOR
-from ._illumination import DampedNewton as DampedNewton
+from .._qp import DampedNewton as DampedNewton
 from ._illumination import L2Prior as L2Prior
 from ._illumination import Prior as Prior
 from ._illumination import as_prior as as_prior
@@ -14,7 +14,7 @@ from ._sunsky import SunSkyPrior as SunSkyPrior
 from ._tv import total_variation as total_variation
 from ._illumination import IlluminationOperator as IlluminationOperator
 from ._illumination import IlluminationSolution as IlluminationSolution
-from ._illumination import ProjectedNewton as ProjectedNewton
+from .._qp import ProjectedNewton as ProjectedNewton
 from ._illumination import gram_matrix as gram_matrix
 from ._illumination import normal_matrix as normal_matrix
 from ._illumination import prior_matrix as prior_matrix

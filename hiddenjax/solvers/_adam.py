@@ -12,12 +12,12 @@ import optax
 from jaxtyping import Array, Float, Int
 
 from ..transport import TransportMatrix
+from .._qp import _kkt_residual
 from ._illumination import (
     DEFAULT_RIDGE,
     DEFAULT_SMOOTH,
     _check_image,
     _check_weights,
-    _kkt_residual,
     normal_matrix,
     prior_matrix,
     regularization_weights,

@@ -19,15 +19,12 @@ import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Float, Int
 
-from ..transport import TransportMatrix
+from .._qp import ProjectedNewton, _cholesky, _solve
 from ._illumination import (
     DEFAULT_RIDGE,
     DEFAULT_SMOOTH,
-    ProjectedNewton,
     _check_image,
-    _cholesky,
     _check_weights,
-    _solve,
     gram_matrix,
     prior_matrix,
     views,

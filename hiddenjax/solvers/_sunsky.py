@@ -26,13 +26,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from .._qp import ProjectedNewton, _cho_solve, solve_from
 from ._illumination import (
     DEFAULT_RIDGE,
     L2Prior,
     Prior,
-    ProjectedNewton,
-    _cho_solve,
-    solve_from,
 )
 
 

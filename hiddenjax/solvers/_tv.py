@@ -18,13 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._qp import MAX_STEPS, SUCCESS, _cho_solve
 from ._illumination import (
     DEFAULT_RIDGE,
-    MAX_STEPS,
-    SUCCESS,
     Prior,
     _check_weights,
-    _cho_solve,
     regularization_weights,
 )
 

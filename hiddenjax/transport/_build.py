@@ -40,7 +40,7 @@ def transport_matrix(
     """Ray transport matrix `A (P, N)` of a scene seen by a camera, lit by an env grid (eq. 5.1-5.2).
 
     `A[p, j] = mean over footprint samples s of (albedo(s)/pi) * integral over Omega_j of
-    V(s, w) max(0, n_s . w) dw` (DESIGN.md section 2); unoccluded parts of each cell are exact,
+    V(s, w) max(0, n_s . w) dw` (docs/conventions.md, "Transport matrix"); unoccluded parts of each cell are exact,
     occlusion is estimated with `samples` stratified directions per env pixel (see `_direct`).
 
     **Arguments:**

@@ -8,12 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._files import atomic_path
+from ..io._files import atomic_path
 from ..scene import EnvGrid
 
 
 class TransportMatrix(eqx.Module):
-    """Direct-lighting ray transport `A (P, N)` of the observed pixels (DESIGN.md section 2).
+    """Direct-lighting ray transport `A (P, N)` of the observed pixels (docs/conventions.md, "Transport matrix").
 
     `A[p, j]` is the radiance of observed pixel `p` when env pixel `j` has unit radiance and all
     others are dark, so `A @ x` is the image in the radiance units of `x`. `A = diag(albedo) A'`

@@ -62,7 +62,7 @@ def mitsuba_variant() -> str:
 def upsample_for_mitsuba(envmap, factor: int = 8) -> np.ndarray:
     """Our cell map `(H, W[, C])` -> an RGB bitmap `(kH, kW, 3)` for Mitsuba's `envmap`.
 
-    Mitsuba puts bitmap row `r` at `theta = r pi/(rows - 1)` (DESIGN.md section 2), so each row
+    Mitsuba puts bitmap row `r` at `theta = r pi/(rows - 1)` (docs/conventions.md, "Environment grid"), so each row
     takes the cell containing that angle; a large `factor` keeps cell edges sharp.
     """
     env = np.asarray(envmap, dtype=np.float32)

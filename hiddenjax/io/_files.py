@@ -1,4 +1,4 @@
-"""Atomic file writes: a reader never sees a half-written output."""
+"""Atomic file writes: a reader never sees a half-written output, and the file gets the user's umask."""
 
 import contextlib
 import os
@@ -6,11 +6,20 @@ import tempfile
 from pathlib import Path
 
 
+def _umask() -> int:
+    """The process's file-creation mask (read by setting it and setting it back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_path(path):
     """Yield a temporary path beside `path` (same suffix); rename it onto `path` on success.
 
-    On an exception the temporary file is removed and `path` is left untouched.
+    On an exception the temporary file is removed and `path` is left untouched. The temporary
+    file is created private (mode 0600) and given the mode an ordinary `open()` would give,
+    `0666 & ~umask` (0644 under the usual umask 022), before it is renamed into place.
     """
     path = Path(path)
     if not path.parent.exists():
@@ -19,6 +28,7 @@ def atomic_path(path):
     os.close(fd)
     try:
         yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

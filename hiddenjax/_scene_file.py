@@ -52,10 +52,10 @@ from typing import Any, NamedTuple
 import numpy as np
 import trimesh
 
-from ..scene import FIXTURES, Camera, EnvGrid, Scene, Surface, ground_plane, load_mesh
-from ..scene import fixture as _fixture
-from ..transport import DEFAULT_PIXEL_SAMPLES, DEFAULT_SAMPLES
-from ._images import read_image
+from .scene import FIXTURES, Camera, EnvGrid, Scene, Surface, ground_plane, load_mesh
+from .scene import fixture as _fixture
+from .transport import DEFAULT_PIXEL_SAMPLES, DEFAULT_SAMPLES
+from .io import read_image
 
 try:
     import tomllib
