@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -108,7 +109,7 @@ def solve(args) -> dict:
     if args.prior not in (None, "l2") and (args.smooth is not None or args.ridge is not None or args.absolute):
         raise ValueError(f"--smooth/--ridge/--absolute are the l2 prior's weights; drop them or use --prior l2 "
                          f"(got --prior {args.prior})")
-    prior = args.prior
+    prior = "l2" if args.prior is None and args.signed else args.prior  # as solve_illumination: signed maps use l2
     if prior == "l2" or (prior is None and (args.smooth is not None or args.ridge is not None or args.absolute)):
         prior = L2Prior(DEFAULT_SMOOTH if args.smooth is None else args.smooth,
                         DEFAULT_RIDGE if args.ridge is None else args.ridge, args.absolute)
@@ -273,7 +274,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--prior", choices=PRIORS, default=None,
                    help=f"hdr (eq. 5.3 with a log-domain smoothness), l2 (eq. 5.3), tv (total variation on the "
                         f"sphere), sunsky (compact sources + smooth sky); default {DEFAULT_PRIOR}, or l2 when "
-                        f"--smooth/--ridge are given")
+                        f"--smooth/--ridge or --signed are given")
     p.add_argument("--smooth", type=float, default=None, help=f"the l2 prior's smoothness weight (default {DEFAULT_SMOOTH})")
     p.add_argument("--ridge", type=float, default=None, help=f"the l2 prior's ridge weight (default {DEFAULT_RIDGE})")
     p.add_argument("--absolute", action="store_true", help="--smooth/--ridge are absolute, not relative")
@@ -314,8 +315,15 @@ def main(argv=None) -> int:
     """Entry point of the `hiddenjax` console script; returns the exit status."""
     parser = _parser()
     args = parser.parse_args(argv)
+
+    def show(message, category, *_):  # one line on stderr, as the errors are
+        print(f"hiddenjax {args.command}: warning: {' '.join(str(message).split())}", file=sys.stderr)
+
     try:
-        args.run(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = show
+            warnings.simplefilter("always", UserWarning)
+            args.run(args)
     except (ValueError, OSError) as e:
         message = " ".join(str(e).split())  # one line
         print(f"hiddenjax {args.command}: error: {message}", file=sys.stderr)

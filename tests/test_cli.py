@@ -34,9 +34,13 @@ scale = [10.0, 1.0, 10.0]
 
 def run(*args, cwd, umask=None):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    preexec = None if umask is None else (lambda: os.umask(umask))
-    return subprocess.run([sys.executable, "-m", "hiddenjax", *map(str, args)], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=300, preexec_fn=preexec)
+    old = None if umask is None else os.umask(umask)  # the child inherits it
+    try:
+        return subprocess.run([sys.executable, "-m", "hiddenjax", *map(str, args)], cwd=cwd, env=env,
+                              capture_output=True, text=True, timeout=300)
+    finally:
+        if old is not None:
+            os.umask(old)
 
 
 @pytest.fixture(scope="module")
@@ -129,6 +133,21 @@ def test_inprocess_errors(built, capsys):
                  "--smooth", "0.1"]) == 1
     assert "the l2 prior's weights" in capsys.readouterr().err
     assert not any(built.glob("x.*"))
+
+
+def test_photos_that_make_no_physical_sense(built, capsys):
+    """An all-zero photo is refused; a difference of frames solved with x >= 0 warns and names --signed."""
+    hj.io.write_exr(built / "zero.exr", np.zeros((10, 12), np.float32))
+    assert main(["solve", str(built / "A.npz"), str(built / "zero.exr"), "-o", str(built / "z.exr")]) == 1
+    assert "zero at every observed pixel" in capsys.readouterr().err
+    assert not (built / "z.exr").exists()
+    diff = np.where(np.arange(12) < 6, 1.0, -1.0)[None, :] * np.ones((10, 1))
+    hj.io.write_exr(built / "diff.exr", diff.astype(np.float32))
+    assert main(["solve", str(built / "A.npz"), str(built / "diff.exr"), "-o", str(built / "d.exr"), "--prior", "l2"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "warning: the photo has negative radiance (50%" in err[0] and "--signed" in err[0]
+    assert main(["solve", str(built / "A.npz"), str(built / "diff.exr"), "-o", str(built / "d.exr"), "--signed"]) == 0
+    assert "warning" not in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("prior", ["hdr", "l2", "tv", "sunsky"])

@@ -229,3 +229,30 @@ def test_hdr_default_beats_the_thesis_prior_on_a_sun_sky(sun_scene):
     e_hdr = hj.metrics.env_errors(np.asarray(default.env), truth)
     e_l2 = hj.metrics.env_errors(np.asarray(hj.solve_illumination(T, photo, prior="l2").env), truth)
     assert e_hdr["ssim_tm"] > e_l2["ssim_tm"] + 0.05 and e_hdr["ssim"] > e_l2["ssim"] - 0.02, (e_hdr, e_l2)
+
+
+def test_inputs_that_make_no_physical_sense(small_setup):
+    """Zero photos are refused, negative photos solved with x >= 0 warn, and an unregularized problem
+    with fewer observed pixels than unknowns is refused before factorizing."""
+    grid = hj.EnvGrid(height=4, width=8)
+    T = hj.transport_matrix(small_setup.scene, small_setup.camera, grid, samples=2, pixel_samples=1)
+    with pytest.raises(ValueError, match="zero at every observed pixel"):
+        hj.solve_illumination(T, np.zeros((48, 48), np.float32))
+    photo = np.asarray(hj.render(T, np.ones((4, 8), np.float32)))
+    with pytest.warns(UserWarning, match="negative radiance"):
+        hj.solve_illumination(T, photo - 1.5 * photo.mean(), prior="l2")
+    mask = np.zeros((48, 48), bool)
+    mask[-2:, :8] = True  # 16 pixels of the table for 32 unknowns
+    few = hj.transport_matrix(small_setup.scene, small_setup.camera, grid, samples=2, pixel_samples=1, mask=mask)
+    with pytest.raises(ValueError, match="16 observed pixels for 32 unknowns and no regularization"):
+        hj.solve_illumination(few, photo, smooth=0.0, ridge=0.0)
+    assert hj.solve_illumination(few, photo, smooth=0.0, ridge=1e-3).env.shape == (4, 8)
+
+
+def test_hdr_prior_refuses_a_signed_solve(small_setup):
+    T = hj.transport_matrix(small_setup.scene, small_setup.camera, hj.EnvGrid(height=4, width=8), samples=2,
+                            pixel_samples=1)
+    photo = np.asarray(hj.render(T, np.ones((4, 8), np.float32)))
+    with pytest.raises(ValueError, match="needs x >= 0; solve a signed map with prior='l2'"):
+        hj.solve_illumination(T, photo, prior="hdr", nonneg=False)
+    assert hj.solve_illumination(T, photo, nonneg=False).smooth > 0  # the signed default is l2

@@ -76,6 +76,7 @@ def test_model_rows_and_bad_input(problem):
                                  progress=False)
 
 
+@pytest.mark.slow  # a long study: runs with -m slow (CI runs it)
 def test_soft_derivative_matches_embree_finite_differences(problem):
     """d(A(theta) x)/d theta of the soft model against central differences of Embree matrices.
 
@@ -102,6 +103,7 @@ def test_soft_derivative_matches_embree_finite_differences(problem):
     assert min(cosines) > 0.8, cosines
 
 
+@pytest.mark.slow  # a long study: runs with -m slow (CI runs it)
 def test_taylor_system_is_model_averaging_of_the_linearized_model(problem):
     setup, grid, model, _, _ = problem
     theta = SceneParams.zeros()
@@ -248,6 +250,7 @@ def _joint_step(A, R, x, J, r, u, s2):
     return np.linalg.solve(M, g)[:n]
 
 
+@pytest.mark.slow  # a long study: runs with -m slow (CI runs it)
 def test_refit_step_is_the_joint_gauss_newton_step(problem):
     """With the operator, the step is the Gauss-Newton step of the joint problem in (theta, x_F)."""
     setup, grid, model, sky, _ = problem
@@ -358,6 +361,7 @@ def test_transport_jacobian_is_the_whitened_derivative_of_the_builder(problem):
         hj.solvers.transport_jacobian(rows, SceneParams.zeros(), x, unc)
 
 
+@pytest.mark.slow  # a long study: runs with -m slow (CI runs it)
 def test_scene_solve_with_embree_differences_recovers_the_pose():
     """Gauss-Newton with `T_x` from differences of Embree matrices finds a 3 mm / 3 deg pose error.
 

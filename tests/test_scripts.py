@@ -9,11 +9,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = [p for folder in ("examples", "benchmarks") for p in sorted((ROOT / folder).glob("*.py"))
+# Scripts whose --quick run takes half a minute or more on 2 cores: run with -m slow (CI runs them).
+LONG = {"around_the_corner.py", "uncertain_scene.py", "bench_shadows.py", "bench_corners.py"}
+SCRIPTS = [pytest.param(p, marks=[pytest.mark.slow] if p.name in LONG else [], id=f"{p.parent.name}/{p.name}")
+           for folder in ("examples", "benchmarks") for p in sorted((ROOT / folder).glob("*.py"))
            if not p.name.startswith("_")]  # _report.py is a shared module, not a script
 
 
-@pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: f"{p.parent.name}/{p.name}")
+@pytest.mark.parametrize("script", SCRIPTS)
 def test_script_runs_quick(script, tmp_path):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     proc = subprocess.run(

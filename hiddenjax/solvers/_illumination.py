@@ -5,6 +5,7 @@
 """
 
 import abc
+import warnings
 from functools import partial
 from typing import Any, ClassVar
 
@@ -104,6 +105,9 @@ class L2Prior(Prior):
         return B, factor, R
 
     def solve(self, op, c, ys, nonneg, solver):
+        if self.reweight and not nonneg:
+            raise ValueError("the HDR-aware prior (reweight > 0, the 'hdr' default) weights the smoothness by log x, "
+                             "which needs x >= 0; solve a signed map with prior='l2' (the default when nonneg=False)")
         B, factor, R = self.reweighted(op, c, nonneg, solver)
         x, grad, steps, result = _solve(B, factor, c, solver, nonneg)
         # |A x - y|^2 + x^T R x from the residual itself: x^T B x - 2 c^T x + |y|^2 would lose the
@@ -263,6 +267,7 @@ class IlluminationOperator(eqx.Module):
         """
         Ts = views(T)
         prior = as_prior(prior, smooth, ridge, absolute)
+        _check_determined(Ts, prior)
         B, ls, lr = prior.normal_matrix(Ts, gram)
         return cls(Ts, B, _cholesky(B), jnp.asarray(ls), jnp.asarray(lr), prior)
 
@@ -285,6 +290,7 @@ class IlluminationOperator(eqx.Module):
         if len(images) != len(self.views):
             raise ValueError(f"{len(self.views)} views need {len(self.views)} images, got {len(images)}")
         ys = [_check_image(t, im).astype(t.A.dtype) for t, im in zip(self.views, images)]
+        _check_signs(ys, nonneg)
         if len({y.shape[1:] for y in ys}) != 1:
             raise ValueError("all views' images must have the same number of channels")
         c = sum(transpose_times(t.A, y) for t, y in zip(self.views, ys))
@@ -422,6 +428,17 @@ def transpose_times(A: Float[Array, "P N"], y: Float[Array, "P *K"]) -> Float[Ar
     return rows.T.reshape((A.shape[1],) + y.shape[1:])
 
 
+def _check_determined(Ts, prior):
+    """Refuse an unregularized problem with fewer observed pixels than unknowns (its `B` is singular)."""
+    if not isinstance(prior, L2Prior) or any(isinstance(w, jax.core.Tracer) for w in (prior.smooth, prior.ridge)):
+        return
+    pixels, unknowns = sum(t.A.shape[0] for t in Ts), Ts[0].A.shape[1]
+    if float(prior.smooth) == 0 and float(prior.ridge) == 0 and pixels < unknowns:
+        raise ValueError(f"{pixels} observed pixels for {unknowns} unknowns and no regularization (smooth=0, "
+                         f"ridge=0): the map is not determined; give smooth= or ridge= (or the default prior), "
+                         f"a coarser grid, or a larger mask")
+
+
 def _check_weights(smooth, ridge):
     for name, value in (("smooth", smooth), ("ridge", ridge)):
         if isinstance(value, jax.core.Tracer):
@@ -435,6 +452,31 @@ def _check_image(T: TransportMatrix, image):
     if image.ndim not in (2, 3):
         raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
     y = T.image_to_rows(image)
-    if not isinstance(y, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(y))):
+    if isinstance(y, jax.core.Tracer):
+        return y
+    if not bool(jnp.all(jnp.isfinite(y))):
         raise ValueError("image has non-finite values (NaN or inf) inside the transport matrix's mask")
+    if not bool(jnp.any(y != 0)):
+        raise ValueError("image is zero at every observed pixel: there is no light to solve for; check the "
+                         "exposure, the file, and that the photo matches the transport matrix's camera and mask")
     return y
+
+
+NEGATIVE_MASS = 0.05  # a photo with more of its absolute value below zero than this is not a radiance image
+
+
+def _check_signs(ys, nonneg: bool):
+    """Warn when a photo solved with `x >= 0` has substantial negative radiance (a difference of frames?).
+
+    Sensor noise around a black level leaves small negatives; a subtracted pair of frames is half
+    negative. Above `NEGATIVE_MASS` of the absolute value the warning names the fix.
+    """
+    if not nonneg or any(isinstance(y, jax.core.Tracer) for y in ys):
+        return
+    negative = sum(float(jnp.sum(jnp.maximum(-y, 0))) for y in ys)
+    total = sum(float(jnp.sum(jnp.abs(y))) for y in ys)
+    if negative > NEGATIVE_MASS * total:
+        warnings.warn(f"the photo has negative radiance ({100 * negative / total:.0f}% of its absolute value) but is "
+                      "solved with x >= 0: for a difference of frames solve the signed map (nonneg=False, or "
+                      "`hiddenjax solve --signed`); if the negatives are sensor noise, subtract less black level",
+                      UserWarning, stacklevel=4)
