@@ -7,7 +7,7 @@ float32). Baseline, in the same run: the textbook dense numpy computation
 (`inv(B)`, then `rowsum((A inv(B)) * A)`), in float64, which also gives the reference values for
 the float32 error. Peak memory is the growth of a fresh process's peak resident set (VmHWM) while
 the computation runs a second time (after compiling), compared with the size of `A`; "eager" calls
-the public functions as the README does, "jit" compiles the whole computation as one program.
+the public functions as the guides do, "jit" compiles the whole computation as one program.
 """
 
 import argparse

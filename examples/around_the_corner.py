@@ -13,7 +13,7 @@ refinement, saliency), `loss_curves.png`, `metrics.md` and `results.json`. Datas
 checkpoints are cached in `--out`, so a second run (or an interrupted one) resumes.
 
 `--lamp X Y Z` fixes the active lamp at one position in the corner frame (metres) in every scene,
-training and test alike, instead of drawing it over the hidden corridor (README: that draw costs
+training and test alike, instead of drawing it over the hidden corridor (docs/experiments/around-the-corner.md: that draw costs
 most of the gap to the thesis' d). `--emission uniform` makes the object glow alike all over (the
 thesis' Blender emitter, no lamp) instead.
 

@@ -29,7 +29,7 @@ under a sun the table's shadows alone cannot tell a move of the teapot from a sm
 the sun; then the Jacobian regularizer also takes its derivatives from Embree differences.
 `--grid H` sets the environment map to `H x 2H` cells (`--samples` Embree directions per cell):
 an 8x16 cell is wider than the shadow's turn for a few degrees of yaw, so under a sun the yaw is
-lost; `--size 64 --grid 16 --samples 16 --object-rows 2` recovers the pose (README).
+lost; `--size 64 --grid 16 --samples 16 --object-rows 2` recovers the pose (docs/experiments/uncertain-scenes.md).
 
     python examples/uncertain_scene.py [--quick] [--out DIR] [--starts N] [--lightings K] [--sky sun|cells]
                                        [--size PX] [--grid H] [--samples S] [--object-rows K]

@@ -158,7 +158,7 @@ def _shape_words(shape: tuple) -> str:
 
 
 def load_scene(path) -> SceneFile:
-    """Read and validate a TOML scene file (schema in this module's docstring and the README).
+    """Read and validate a TOML scene file (schema in this module's docstring and docs/guide/scene-files.md).
 
     **Returns:** `SceneFile(scene, camera, grid, transport, path)`; errors are `ValueError`s that
     name the file and the offending key.

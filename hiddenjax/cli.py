@@ -252,7 +252,7 @@ def _parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("transport", help="build the transport matrix A of a scene file (Embree)",
                        description="Build the ray transport matrix A of a TOML scene file and save it as .npz.")
-    p.add_argument("scene", help="TOML scene file (schema in the README)")
+    p.add_argument("scene", help="TOML scene file (schema: docs/guide/scene-files.md)")
     p.add_argument("-o", "--output", required=True, help="output .npz")
     p.add_argument("--samples", type=int, help="directions per env pixel (overrides the scene file)")
     p.add_argument("--pixel-samples", type=int, help="footprint samples per pixel (overrides the scene file)")

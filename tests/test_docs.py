@@ -5,7 +5,6 @@ temporary folder, so the files they write go there. The scene-file guide's TOML 
 `hj.load_scene`. Pages whose blocks take minutes are marked slow (CI runs them too).
 """
 
-import os
 import re
 from pathlib import Path
 

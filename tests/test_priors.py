@@ -12,6 +12,9 @@ from hiddenjax.solvers._tv import shrink, tv_divergence, tv_gradient
 
 from test_solvers import random_problem
 
+# Random least-squares problems (images with negative values) exercise the solvers, not photos.
+pytestmark = pytest.mark.filterwarnings("ignore:the photo has negative radiance:UserWarning")
+
 
 @pytest.fixture
 def x64():

@@ -10,6 +10,9 @@ import hiddenjax as hj
 from hiddenjax.solvers import DampedNewton, ProjectedNewton
 from hiddenjax.transport import TransportMatrix
 
+# Random least-squares problems (images with negative values) exercise the solvers, not photos.
+pytestmark = pytest.mark.filterwarnings("ignore:the photo has negative radiance:UserWarning")
+
 
 def random_problem(seed, P=60, grid=hj.EnvGrid(4, 8), dtype=jnp.float64):
     rng = np.random.default_rng(seed)

@@ -9,7 +9,7 @@ builder (the exact, non-differentiable path; `exact_transport` builds it on the 
 Rows are a fixed mask, shrunk by `margin` pixels away from the object's silhouette, so that small
 moves never change which surface a row sees. `object_rows=k` adds the object's own pixels, its
 silhouette eroded by `k` pixels: they tell a move of the object from a change of the light, which
-the table's shadows alone cannot under a small sun (README, appendix A). The soft model does not
+the table's shadows alone cannot under a small sun (docs/experiments/uncertain-scenes.md). The soft model does not
 render them (a pixel on a moving object sees a different surface point), so such a model takes
 its matrices and derivatives from `exact_transport` (`solve_scene_illumination(...,
 difference=)`).
