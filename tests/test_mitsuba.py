@@ -41,3 +41,21 @@ def test_mitsuba_constant_sky_matches_closed_form(pair):
     plane = T.mask  # observed pixels are plane pixels; some are shadowed by the teapot
     ours = np.asarray(hj.render(T, np.ones(T.grid.shape)))
     assert abs(img[plane].mean() / ours[plane].mean() - 1) < 0.005
+
+
+def test_mitsuba_point_lights_match_the_embree_render_on_the_table():
+    """Mitsuba's point emitters (direct only) give `render_point_lights`' radiance on the fitted pixels;
+    its path tracer adds the interreflections on top (never less light)."""
+    pytest.importorskip("mitsuba")
+    from hiddenjax.transport._mitsuba import render_point_lights_mitsuba
+
+    setup = hj.scenes.object_on_plane("sphere", width=48, height=48)
+    light = np.array([[0.12, 0.35, 0.08]])
+    pixels = np.asarray(hj.shadows.ShadowScene.from_scene(setup.scene, setup.camera).pixels)
+    ours = hj.render_point_lights(setup.scene, setup.camera, light, [0.05], pixel_samples=16).reshape(-1)[pixels]
+    direct = render_point_lights_mitsuba(setup.scene, setup.camera, light, [0.05], max_depth=2, spp=256).reshape(-1)[pixels]
+    assert np.linalg.norm(direct - ours) / np.linalg.norm(ours) < 0.03
+    full = render_point_lights_mitsuba(setup.scene, setup.camera, light, [0.05], max_depth=4, spp=256).reshape(-1)[pixels]
+    assert full.sum() >= direct.sum() * 0.999
+    with pytest.raises(ValueError, match="lights must be finite"):
+        render_point_lights_mitsuba(setup.scene, setup.camera, np.zeros((1, 2)))

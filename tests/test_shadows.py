@@ -542,7 +542,7 @@ def test_fit_lights_recovers_a_light_from_most_initializations(teapot_points):
     inits = [[0.0, 0.8, 0.0], [0.6, 0.4, 0.5], [-0.3, 0.7, 0.3], [0.3, 0.3, -0.3]]
     errors = []
     for init in inits:
-        fit = sh.fit_lights(image, scene, cam, [init], steps=16, shadows=shadows)
+        fit = sh.fit_lights(image, scene, cam, [init], steps=16, shadows=shadows, search=False)  # the soft fit alone
         errors.append(np.linalg.norm(fit.positions[0] - light) / shadows.scale)
         assert fit.loss_history[-1] < fit.loss_history[0]
     assert sum(e < 0.02 for e in errors) >= 3, errors
@@ -554,3 +554,44 @@ def test_fit_lights_rejects_a_light_inside_the_occluder(teapot_points):
     centre = scene[1].mesh.centroid
     with pytest.raises(ValueError, match="inside surface 1"):
         sh.fit_lights(image, scene, cam, [centre], steps=1, shadows=shadows)
+
+
+@pytest.fixture(scope="module")
+def lit_sphere():
+    """The sphere on a table at 48x48, one light, hard shadows plus a constant ambient (10% of the mean)."""
+    setup = hj.scenes.object_on_plane("sphere", width=48, height=48)
+    light = np.array([[0.12, 0.35, 0.08]])
+    photo = hj.render_point_lights(setup.scene, setup.camera, light, [0.05])
+    ambient = 0.1 * float(photo.mean())
+    return setup, light, photo + ambient, ambient
+
+
+def test_search_and_fit_find_a_light_without_a_guess(lit_sphere):
+    setup, light, photo, ambient = lit_sphere
+    found = sh.search_lights(photo, setup.scene, setup.camera)
+    assert np.linalg.norm(found.positions - light) < 0.02
+    # the intensity is pinned by the shadow's contrast; the ambient trades off against the light's
+    # distance (a constant and the cos/d^2 fall-off are nearly collinear over 48x48 floor pixels)
+    assert abs(found.intensities[0] / 0.05 - 1) < 0.2 and 0 < found.ambient < 2 * ambient
+    fit = sh.fit_lights(photo, setup.scene, setup.camera, steps=8)
+    assert np.linalg.norm(fit.positions - light) < 0.02
+    far = sh.fit_lights(photo, setup.scene, setup.camera, light + [[0.2, 0.1, -0.2]], steps=8)  # 30 cm off
+    assert np.linalg.norm(far.positions - light) < 0.02
+    with pytest.raises(ValueError, match="count must be"):
+        sh.search_lights(photo, setup.scene, setup.camera, count=0)
+    with pytest.raises(ValueError, match="box must be"):
+        sh.search_lights(photo, setup.scene, setup.camera, box=[[0, 0, 0], [0, 1, 1]])
+    with pytest.raises(ValueError, match="reach must be"):
+        sh.fit_lights(photo, setup.scene, setup.camera, light, reach=-1.0)
+
+
+def test_search_scores_candidates_by_the_exact_hard_shadow_image(lit_sphere):
+    """The search's unit images are Embree's render at the pixel centres: the closed-form fit at the
+    true light explains the photo up to the pixel filter."""
+    setup, light, photo, ambient = lit_sphere
+    shadows = sh.ShadowScene.from_scene(setup.scene, setup.camera)
+    from hiddenjax.shadows._search import hard_fit
+
+    intensities, a, loss = hard_fit(photo, setup.scene, shadows, light)
+    assert loss < 0.01 and abs(intensities[0] / 0.05 - 1) < 0.05 and abs(a / ambient - 1) < 0.3
+    assert hard_fit(photo, setup.scene, shadows, light + [[0.1, 0.0, 0.0]])[2] > 5 * loss

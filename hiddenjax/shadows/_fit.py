@@ -7,6 +7,7 @@ optimistix's Levenberg-Marquardt (a damped Gauss-Newton). Both anneal the temper
 (a wide basin: shadows felt from afar) to sharp (an accurate edge), a geometric schedule.
 """
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -15,6 +16,7 @@ import numpy as np
 import optimistix as optx
 
 from ..scene import Camera, Scene
+from ._search import hard_fit, search_lights
 from ._shading import ShadowScene, light_images
 
 # Culling tolerance while fitting: a skipped triangle darkens a pixel by less than 1e-6.
@@ -26,7 +28,8 @@ class LightFit(NamedTuple):
 
     **Fields:** `positions (L, 3)` metres; `intensities (L,)` W/sr; `loss_history (K,)` the
     normalized loss `mean(r^2)/mean(y^2)` after each round; `trajectory (K+1, L, 3)` positions from
-    the start through each round; `temperatures (K,)` used in each round.
+    the start through each round; `temperatures (K,)` used in each round; `ambient` the fitted
+    constant radiance (0 without `ambient=True`).
     """
 
     positions: np.ndarray
@@ -34,13 +37,14 @@ class LightFit(NamedTuple):
     loss_history: np.ndarray
     trajectory: np.ndarray
     temperatures: np.ndarray
+    ambient: float = 0.0
 
 
 def _residual(params, args):
-    positions, log_intensity = params
+    positions, log_intensity, ambient = params
     shadows, y, scale, temperature = args
     model = jnp.exp(log_intensity) @ light_images(shadows, positions, temperature, tolerance=FIT_TOLERANCE)
-    return (model - y) / scale
+    return (model - y) / scale + ambient
 
 
 def initial_intensities(shadows: ShadowScene, y, positions, temperature) -> np.ndarray:
@@ -62,10 +66,14 @@ def fit_lights(
     image,
     scene: Scene,
     camera: Camera,
-    init,
+    init=None,
     steps: int = 40,
-    temperature=(100.0, 1000.0),
+    temperature=None,
     *,
+    count: int = 1,
+    ambient: bool = True,
+    search: bool = True,
+    reach: float = 0.3,
     method: str = "lm",
     rounds: int | None = None,
     learning_rate: float = 0.01,
@@ -73,15 +81,24 @@ def fit_lights(
     mask=None,
     shadows: ShadowScene | None = None,
 ) -> LightFit:
-    """Fit point-light positions and intensities to an image lit only by those lights (eq. 4.10).
+    """Fit point-light positions and intensities to an image lit by those lights (eq. 4.10-4.11).
 
     **Arguments:**
     - `image (H, W)` or `(H, W, 3)`: linear radiance (RGB is fitted through its channel mean).
     - `scene`, `camera`: the known geometry; pixels of the default mask (observed surfaces) are fitted.
-    - `init (L, 3)`: initial positions, metres.
+    - `init (L, 3)`: initial positions, metres; `None` (default) starts from `search_lights`
+      (a global search over positions scored by Embree hard shadows) for `count` lights.
     - `steps`: total optimizer steps, split over `rounds` (default: one round per 4 LM steps, or
       per 10 gradient steps).
-    - `temperature`: a number, or `(start, end)` annealed geometrically over the rounds, 1/metres.
+    - `temperature`: a number, or `(start, end)` annealed geometrically over the rounds, 1/metres;
+      default `(100, 1000)` without the search, `(1000, 3000)` after it (its start is
+      within a grid step, so the fit begins sharper, where culling makes each step cheap).
+    - `ambient`: fit a constant radiance beside the lights (eq. 4.11's ambient term: indirect
+      light, a black level), jointly with the positions and intensities.
+    - `search`: start from `search_lights` in the box `init +- reach` metres (from a given
+      `init`), so that a guess tens of centimetres off still converges; the soft fit then
+      refines the searched positions, and the result is whichever of the two explains the photo
+      better under hard (Embree) shadows. `False`: the soft fit alone, from `init`.
     - `method`: `"lm"` (optimistix Levenberg-Marquardt) or `"gd"` (plain gradient descent on the
       normalized loss with `learning_rate` times the scene size per unit gradient, as the thesis).
     - `intensities (L,)`: initial intensities; default the least-squares ones at `init`.
@@ -89,6 +106,22 @@ def fit_lights(
 
     **Returns:** a `LightFit`.
     """
+    shadows = ShadowScene.from_scene(scene, camera, mask) if shadows is None else shadows
+    searched = None
+    if init is None or search:
+        box = None
+        if init is not None:
+            guess = np.atleast_2d(np.asarray(init, np.float64))
+            if guess.ndim != 2 or guess.shape[1] != 3 or not np.all(np.isfinite(guess)):
+                raise ValueError(f"init must be finite light positions (L, 3), got shape {guess.shape}")
+            _check_outside(scene, guess)
+            if not (np.isfinite(reach) and reach > 0):
+                raise ValueError(f"reach must be a positive distance in metres, got {reach}")
+            box, count = np.stack([guess.min(axis=0) - reach, guess.max(axis=0) + reach]), len(guess)
+        searched = search_lights(image, scene, camera, count, box=box, ambient=ambient, shadows=shadows)
+        init = searched.positions
+        temperature = (1000.0, 3000.0) if temperature is None else temperature
+    temperature = (100.0, 1000.0) if temperature is None else temperature
     init = np.atleast_2d(np.asarray(init, np.float64))
     if init.ndim != 2 or init.shape[1] != 3 or not np.all(np.isfinite(init)):
         raise ValueError(f"init must be finite light positions (L, 3), got shape {init.shape}")
@@ -96,7 +129,6 @@ def fit_lights(
         raise ValueError(f"method must be 'lm' or 'gd', got {method!r}")
     if not isinstance(steps, (int, np.integer)) or steps < 1:
         raise ValueError(f"steps must be a positive integer, got {steps!r}")
-    shadows = ShadowScene.from_scene(scene, camera, mask) if shadows is None else shadows
     image = np.asarray(image, np.float32)
     if not np.all(np.isfinite(image)):
         raise ValueError("image contains non-finite values")
@@ -113,42 +145,62 @@ def fit_lights(
     temps = np.geomspace(t0, t1, rounds)
     if intensities is None:
         intensities = initial_intensities(shadows, y, init, temps[0])
-    params = (jnp.asarray(init, jnp.float32), jnp.log(jnp.asarray(intensities, jnp.float32)).reshape(-1))
+    params = (jnp.asarray(init, jnp.float32), jnp.log(jnp.asarray(intensities, jnp.float32)).reshape(-1),
+              jnp.zeros((), jnp.float32))
     if params[1].shape != (len(init),) or not np.all(np.isfinite(np.asarray(params[1]))):
         raise ValueError(f"intensities must be {len(init)} positive values")
 
-    run = _lm_round if method == "lm" else _gd_round
+    run = (_lm_round if method == "lm" else _gd_round)[bool(ambient)]
     history, trajectory = [], [np.asarray(params[0])]
     for T in temps:
         params, loss = run(params, (shadows, y, scale, jnp.float32(T)), per_round, learning_rate * shadows.scale)
         history.append(float(loss))
         trajectory.append(np.asarray(params[0]))
-    positions, log_i = (np.asarray(p, np.float64) for p in params)
-    return LightFit(positions, np.exp(log_i), np.array(history), np.stack(trajectory), temps)
+    positions, log_i, a = (np.asarray(p, np.float64) for p in params)
+    if searched is not None:  # keep the soft refinement only if it explains the photo better, hard shadows
+        refined = hard_fit(image, scene, shadows, positions, ambient)
+        if searched.loss < refined[2]:
+            positions, log_i, a = searched.positions, np.log(np.maximum(searched.intensities, 1e-30)), 0.0
+            trajectory.append(positions)
+            return LightFit(positions, searched.intensities, np.array(history), np.stack(trajectory), temps,
+                            searched.ambient)
+    return LightFit(positions, np.exp(log_i), np.array(history), np.stack(trajectory), temps, float(a * scale))
 
 
 def _loss(params, args):
     return jnp.mean(_residual(params, args) ** 2)
 
 
-def _lm_impl(params, args, steps, _lr):
+def _split(params, fit_ambient):
+    """The optimized parameters and the held ones: the ambient is held at 0 unless it is fitted."""
+    return (params, ()) if fit_ambient else (params[:2], params[2:])
+
+
+def _lm_impl(params, args, steps, _lr, fit_ambient):
+    free, held = _split(params, fit_ambient)
+    residual = lambda p, a: _residual((*p, *held), a)
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8)
-    sol = optx.least_squares(_residual, solver, params, args=args, max_steps=steps, throw=False)
-    return sol.value, _loss(sol.value, args)
+    sol = optx.least_squares(residual, solver, free, args=args, max_steps=steps, throw=False)
+    params = (*sol.value, *held)
+    return params, _loss(params, args)
 
 
-def _gd_impl(params, args, steps, lr):
-    grad = jax.grad(_loss)
+def _gd_impl(params, args, steps, lr, fit_ambient):
+    free, held = _split(params, fit_ambient)
+    grad = jax.grad(lambda p, a: _loss((*p, *held), a))
 
     def body(_, p):
         return jax.tree.map(lambda x, g: x - lr * g, p, grad(p, args))
 
-    params = jax.lax.fori_loop(0, steps, body, params)
+    free = jax.lax.fori_loop(0, steps, body, free)
+    params = (*free, *held)
     return params, _loss(params, args)
 
 
-_lm_round = jax.jit(_lm_impl, static_argnums=2)
-_gd_round = jax.jit(_gd_impl, static_argnums=2)
+# One compiled program per (method, ambient, steps per round): the temperature is an argument, so
+# the annealing rounds reuse it.
+_lm_round = {a: jax.jit(partial(_lm_impl, fit_ambient=a), static_argnums=2) for a in (False, True)}
+_gd_round = {a: jax.jit(partial(_gd_impl, fit_ambient=a), static_argnums=2) for a in (False, True)}
 
 
 def _check_outside(scene: Scene, lights):

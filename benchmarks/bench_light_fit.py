@@ -1,0 +1,132 @@
+"""Light fitting on path-traced photos: accuracy from near and far starts, time per light.
+
+    python benchmarks/bench_light_fit.py [--quick] [--out DIR]
+
+Photos: Mitsuba 3's path tracer (`max_depth=4`: direct light plus two diffuse bounces, 256 spp,
+box filter) of the fixtures on a table at 128x128 pixels, each under one isotropic point light
+(0.05 W/sr) at three positions, and the teapot under three lights at once. Without Mitsuba the
+photos fall back to Embree hard-shadow renders plus a constant ambient (reported in
+`results.json` as `photos`). Fits: `hj.shadows.fit_lights` from a start 5 cm and 30 cm off (a
+random direction) and with no start at all (`init=None`: the global search in the default box),
+each with the ambient term. Baseline in the same run: one Embree hard-shadow render of the same
+image (`hj.render_point_lights`).
+"""
+
+import argparse
+import itertools
+import json
+import time
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+
+import hiddenjax as hj
+from _report import Table, finish_plot  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+INTENSITY = 0.05
+LIGHTS = np.array([[0.12, 0.35, 0.08], [-0.2, 0.25, 0.1], [0.05, 0.45, -0.18]])
+
+
+def photo_renderer():
+    """Mitsuba's path tracer when it is installed, else Embree hard shadows plus an ambient."""
+    try:
+        from hiddenjax.transport._mitsuba import render_point_lights_mitsuba
+
+        render_point_lights_mitsuba(*_fixture("sphere", 8), LIGHTS[:1], [INTENSITY], spp=1)
+        return "mitsuba path tracer, max_depth=4, 256 spp", lambda scene, cam, lights: render_point_lights_mitsuba(
+            scene, cam, lights, [INTENSITY] * len(lights), max_depth=4, spp=256)
+    except ImportError:
+        def fallback(scene, cam, lights):
+            image = hj.render_point_lights(scene, cam, lights, [INTENSITY] * len(lights))
+            return image + 0.1 * image.mean()
+
+        return "embree hard shadows + 10% ambient (mitsuba not installed)", fallback
+
+
+def _fixture(name, size):
+    setup = hj.scenes.object_on_plane(name, width=size, height=size)
+    return setup.scene, setup.camera
+
+
+def _embree_seconds(scene, cam, lights):
+    """Best of three Embree hard-shadow renders of the photo (`pixel_samples=1`, the search's rays)."""
+    times = []
+    for _ in range(3):
+        t = time.perf_counter()
+        hj.render_point_lights(scene, cam, lights, [INTENSITY] * len(lights), pixel_samples=1)
+        times.append(time.perf_counter() - t)
+    return min(times)
+
+
+def _error(found, truth):
+    """Per-light distances (m) under the best matching of found to true lights."""
+    best = min(itertools.permutations(range(len(truth))),
+               key=lambda p: np.sum(np.linalg.norm(found[list(p)] - truth, axis=1)))
+    return np.linalg.norm(found[list(best)] - truth, axis=1)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", type=Path, default=Path("out/bench_light_fit"))
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    size, fixtures, lights = (48, ["sphere"], LIGHTS[:1]) if args.quick else (128, ["teapot", "sphere", "coded_aperture"],
+                                                                               LIGHTS)
+    photos, render = photo_renderer()
+    rng = np.random.default_rng(0)
+    results = dict(photos=photos, size=size, intensity=INTENSITY, single=[], multi=None)
+    table = Table()
+    table.append(("fixture / light", "start", "error (cm)", "time (s), x Embree render"))
+    for name in fixtures:
+        scene, cam = _fixture(name, size)
+        for light in lights:
+            photo = render(scene, cam, light[None])
+            embree = _embree_seconds(scene, cam, light[None])
+            for start in (0.05, 0.30, None):
+                if start is None:
+                    init = None
+                else:
+                    d = rng.normal(size=3)
+                    init = light[None] + start * d / np.linalg.norm(d)
+                t = time.perf_counter()
+                fit = hj.shadows.fit_lights(photo, scene, cam, init, steps=12)
+                seconds = time.perf_counter() - t
+                err = float(np.linalg.norm(fit.positions[0] - light))
+                label = "none" if start is None else f"{100 * start:.0f} cm off"
+                results["single"].append(dict(fixture=name, triangles=len(scene[1].triangles), light=light.tolist(),
+                                              start=start, error_m=err, seconds=seconds, embree_s=embree,
+                                              ambient=fit.ambient))
+                table.append((f"{name} ({len(scene[1].triangles)} tri) {light.tolist()}", label, f"{100 * err:.2f}",
+                              f"{seconds:.1f}, {seconds / embree:.0f}x"))
+    if not args.quick:
+        scene, cam = _fixture("teapot", size)
+        photo = render(scene, cam, LIGHTS)
+        for start in (0.30, None):
+            init = None if start is None else LIGHTS + start * rng.normal(size=(3, 3)) / np.sqrt(3)
+            t = time.perf_counter()
+            fit = hj.shadows.fit_lights(photo, scene, cam, init, steps=12, count=3)
+            seconds = time.perf_counter() - t
+            err = _error(fit.positions, LIGHTS)
+            results.setdefault("multi", [])
+            results["multi"] = (results["multi"] or []) + [dict(start=start, errors_m=err.tolist(), seconds=seconds)]
+            table.append(("teapot, 3 lights", "none" if start is None else "~30 cm off",
+                          " / ".join(f"{100 * e:.2f}" for e in err), f"{seconds:.1f} ({seconds / 3:.1f} per light)"))
+    table.print_all()
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for start, marker in ((0.05, "o"), (0.30, "s"), (None, "^")):
+        rows = [r for r in results["single"] if r["start"] == start]
+        ax.scatter([r["seconds"] for r in rows], [100 * r["error_m"] for r in rows], marker=marker,
+                   label="no start" if start is None else f"start {100 * start:.0f} cm off")
+    ax.axhline(1.0, color="k", ls="--", lw=0.8)
+    finish_plot(fig, ax, args.out / "light_fit.png", "seconds per light", "error (cm)", f"{photos}, {size}x{size}")
+    (args.out / "results.json").write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,217 @@
+"""Where to start a light fit: a global search over light positions scored by Embree hard shadows.
+
+The soft shadow-volume fit (`fit_lights`) converges from a few centimetres; from a guess tens of
+centimetres off its shadows fall on the wrong pixels and the fit stalls. The search needs no
+guess: every candidate position `p` on a coarse 3D grid is scored by the exact (Embree) direct
+image of a unit light there at the fitted pixels' centres,
+`h_p(x) = rho/pi * max(0, n.(p - x)) / |p - x|^3 * V(x, p)` (eq. 4.11, hard visibility), with the
+intensities and an ambient constant fitted in closed form (non-negative least squares,
+`y ~ sum_l I_l h_{p_l} + a`). Lights are added greedily (each new one the candidate that lowers
+the residual most with the earlier ones refitted), then each is refined by a pattern search on
+finer local grids; the best few coarse candidates each start such a pass (the hard-shadow loss
+has many local minima along the ray from the shadow to the light).
+No gradient is needed, so a candidate costs one shadow ray per pixel (about 0.2 ms for 4096
+pixels on 2 cores).
+"""
+
+from typing import NamedTuple
+
+import numpy as np
+import scipy.optimize
+
+from ..scene import Camera, Scene
+from ..transport._embree import RayCaster
+from ._shading import ShadowScene
+
+
+class LightSearch(NamedTuple):
+    """Result of `search_lights`.
+
+    **Fields:** `positions (L, 3)` metres; `intensities (L,)` W/sr; `ambient` the fitted constant
+    radiance; `loss` the normalized residual `|r|^2 / |y|^2`; `candidates` how many positions were
+    scored; `box (2, 3)` the searched region.
+    """
+
+    positions: np.ndarray
+    intensities: np.ndarray
+    ambient: float
+    loss: float
+    candidates: int
+    box: np.ndarray
+
+
+def default_box(scene: Scene) -> np.ndarray:
+    """A search region above the occluders: `(2, 3)` min and max corners, metres.
+
+    The occluders are the surfaces that are not observed (`observe=False`), or every surface when
+    all are observed; with extent `s` (largest side of their bounding box) and top `y1`, the box
+    spans `+-4 s` around their centre in x and z and `[y1 + s/4, y1 + 6 s]` in height.
+    """
+    occluders = [s for s in scene if not s.observe] or list(scene)
+    points = np.concatenate([np.asarray(s.triangles).reshape(-1, 3) for s in occluders])
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    size = float(np.max(hi - lo))
+    centre = (lo + hi) / 2
+    return np.array([[centre[0] - 4 * size, hi[1] + 0.25 * size, centre[2] - 4 * size],
+                     [centre[0] + 4 * size, hi[1] + 6 * size, centre[2] + 4 * size]])
+
+
+def _unit_images(caster: RayCaster, shadows: ShadowScene, positions: np.ndarray, batch: int = 16) -> np.ndarray:
+    """`(C, P)`: the hard-shadow direct image at the fitted pixels of a unit light at each position.
+
+    The shadow rays of `batch` positions go to Embree in one call.
+    """
+    x = np.asarray(shadows.points, np.float64)
+    n = np.asarray(shadows.normals, np.float64)
+    albedo = np.asarray(shadows.albedo, np.float64)
+    out = np.zeros((len(positions), len(x)))
+    for start in range(0, len(positions), batch):
+        p = positions[start:start + batch]
+        v = p[:, None, :] - x[None]  # (B, P, 3)
+        d = np.linalg.norm(v, axis=-1)
+        w = v / np.maximum(d, 1e-300)[..., None]
+        cos = np.sum(n[None] * w, axis=-1)
+        lit = np.nonzero((cos > 0) & (d > 0))
+        visible = ~caster.occluded_within(np.broadcast_to(x[None], v.shape)[lit], w[lit], d[lit])
+        shade = np.zeros(d.shape)
+        shade[lit] = np.where(visible, albedo[lit[1]] / np.pi * cos[lit] / d[lit] ** 2, 0.0)
+        out[start:start + batch] = shade
+    return out
+
+
+def _fit(columns: np.ndarray, y: np.ndarray, ambient: bool):
+    """Non-negative least squares `y ~ columns @ I (+ a)`: `(I, a, residual^2)` (the ambient may be negative)."""
+    F = columns if not ambient else np.concatenate([columns, np.ones((len(y), 1)), -np.ones((len(y), 1))], axis=1)
+    scale = np.maximum(np.linalg.norm(F, axis=0), 1e-300)
+    coef, rnorm = scipy.optimize.nnls(F / scale, y)
+    coef = coef / scale
+    I = coef[: columns.shape[1]]
+    a = float(coef[-2] - coef[-1]) if ambient else 0.0
+    return I, a, rnorm**2
+
+
+def _single_losses(images: np.ndarray, y: np.ndarray, ambient: bool) -> np.ndarray:
+    """`(C,)` residuals `|y - I h - a|^2` of one light per candidate image `h (C, P)`, `I >= 0`, in closed
+    form for all candidates at once (the 2x2 normal equations; `I` clipped to 0 where negative)."""
+    hy, hh, yy = images @ y, np.einsum("cp,cp->c", images, images), float(y @ y)
+    if not ambient:
+        I = np.maximum(hy, 0) / np.maximum(hh, 1e-300)
+        return yy - 2 * I * hy + I**2 * hh
+    P, h1, y1 = len(y), images.sum(axis=1), float(y.sum())
+    det = np.maximum(hh * P - h1**2, 1e-300)
+    I = (P * hy - h1 * y1) / det
+    a = (hh * y1 - h1 * hy) / det
+    rss = yy - 2 * I * hy - 2 * a * y1 + I**2 * hh + 2 * I * a * h1 + a**2 * P
+    return np.where(I > 0, rss, yy - y1**2 / P)
+
+
+def _losses(others: np.ndarray, images: np.ndarray, y: np.ndarray, ambient: bool) -> np.ndarray:
+    """Residual of each candidate image beside the fixed lights' columns `others (P, K)`, refitted."""
+    if others.shape[1] == 0:
+        return _single_losses(images, y, ambient)
+    return np.array([_fit(np.concatenate([others, h[:, None]], axis=1), y, ambient)[2] for h in images])
+
+
+def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=None, points: int = 12,
+                  starts: int = 6, refine: int = 6, ambient: bool = True, mask=None, shadows: ShadowScene | None = None) -> LightSearch:
+    """Find `count` point lights from a photo without an initial guess (global search, hard shadows).
+
+    **Arguments:**
+    - `image (H, W)` or `(H, W, 3)`: linear radiance (RGB through its channel mean).
+    - `scene`, `camera`: the known geometry; the fitted pixels are the scene's default mask.
+    - `count`: how many lights.
+    - `box (2, 3)`: the region to search, min and max corners in metres (default `default_box`).
+    - `points`: grid points per axis of the coarse search (`points^3` candidates).
+    - `starts`: how many of the best coarse candidates each start a greedy pass and its
+      refinement (the hard-shadow loss has many local minima); the best run is returned.
+    - `refine`: rounds of local refinement, each a 3x3x3 pattern around every light in turn (the
+      others held) at a spacing that halves every round, starting at the coarse one: the final
+      spacing is the coarse one over `2^(refine - 1)`.
+    - `ambient`: fit a constant radiance beside the lights (indirect light, a black level).
+
+    **Returns:** a `LightSearch`; its `positions` are a start for `fit_lights`.
+    """
+    if not isinstance(count, (int, np.integer)) or count < 1:
+        raise ValueError(f"count must be a positive integer, got {count!r}")
+    if not isinstance(points, (int, np.integer)) or points < 2:
+        raise ValueError(f"points must be an integer >= 2 (grid points per axis), got {points!r}")
+    box = default_box(scene) if box is None else np.asarray(box, np.float64)
+    if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] <= box[0]):
+        raise ValueError(f"box must be (2, 3) finite min and max corners with max > min, got {box.tolist()}")
+    shadows = ShadowScene.from_scene(scene, camera, mask) if shadows is None else shadows
+    image = np.asarray(image, np.float64)
+    if image.ndim == 3:
+        image = image.mean(axis=-1)
+    if image.shape != shadows.image_shape or not np.all(np.isfinite(image)):
+        raise ValueError(f"image must be finite with the camera's shape {shadows.image_shape}, got {image.shape}")
+    y = image.reshape(-1)[np.asarray(shadows.pixels)]
+    norm = float(y @ y)
+    if not norm > 0:
+        raise ValueError("the image is black over the fitted pixels: there is nothing to fit")
+    caster = RayCaster(scene)
+
+    axes = [np.linspace(box[0, k], box[1, k], points) for k in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    grid = grid[~_inside_occluders(scene, grid)]
+    images = _unit_images(caster, shadows, grid)
+    scored = len(grid)
+
+    def refine_all(chosen, columns, scored):
+        """Pattern search around every light in turn (the others held): 3x3x3 grids, halving the step."""
+        chosen, columns = list(chosen), columns.copy()
+        spacing = (box[1] - box[0]) / (points - 1)
+        for _ in range(refine):
+            for j in range(count):
+                # the 3x3x3 pattern, and points along the ray from the occluders through the light:
+                # the loss has a long, narrow valley there (a farther, brighter light casts a
+                # similar shadow), which axis-aligned steps cross but do not follow
+                along = centre + np.linspace(0.7, 1.3, 13)[:, None] * (chosen[j] - centre)
+                local = np.concatenate([chosen[j] + offsets * spacing, along])
+                local = local[~_inside_occluders(scene, local)]
+                local_images = _unit_images(caster, shadows, local)
+                scored += len(local)
+                losses = _losses(np.delete(columns, j, axis=1), local_images, y, ambient)
+                best = int(np.argmin(losses))
+                chosen[j] = local[best]
+                columns[:, j] = local_images[best]
+            spacing = spacing / 2
+        return chosen, columns, _fit(columns, y, ambient)[2], scored
+
+    occluders = [s for s in scene if not s.observe] or list(scene)
+    corners = np.concatenate([np.asarray(s.triangles).reshape(-1, 3) for s in occluders])
+    centre = (corners.min(axis=0) + corners.max(axis=0)) / 2
+    offsets = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    best_run = None
+    first = _single_losses(images, y, ambient)
+    for start in np.argsort(first)[:starts]:  # the best coarse candidates each start a greedy pass
+        chosen, columns = [grid[start]], images[start][:, None]
+        for _ in range(count - 1):  # greedy: the candidate that lowers the residual most, earlier lights refitted
+            pick = int(np.argmin(_losses(columns, images, y, ambient)))
+            chosen.append(grid[pick])
+            columns = np.concatenate([columns, images[pick][:, None]], axis=1)
+        chosen, columns, rss, scored = refine_all(chosen, columns, scored)
+        if best_run is None or rss < best_run[2]:
+            best_run = (chosen, columns, rss)
+    chosen, columns, _ = best_run
+    intensities, a, rss = _fit(columns, y, ambient)
+    return LightSearch(np.stack(chosen), intensities, a, rss / norm, scored, box)
+
+
+def hard_fit(image, scene: Scene, shadows: ShadowScene, positions, ambient: bool = True):
+    """`(intensities, ambient, loss)` of lights at `positions (L, 3)` under hard (Embree) shadows,
+    with the intensities and the ambient fitted in closed form; `loss = |r|^2 / |y|^2`."""
+    image = np.asarray(image, np.float64)
+    image = image.mean(axis=-1) if image.ndim == 3 else image
+    y = image.reshape(-1)[np.asarray(shadows.pixels)]
+    columns = _unit_images(RayCaster(scene), shadows, np.atleast_2d(np.asarray(positions, np.float64))).T
+    intensities, a, rss = _fit(columns, y, ambient)
+    return intensities, a, rss / float(y @ y)
+
+
+def _inside_occluders(scene: Scene, positions: np.ndarray) -> np.ndarray:
+    """`(C,)` True where a position lies inside a closed mesh of the scene (no light can be there)."""
+    inside = np.zeros(len(positions), dtype=bool)
+    for surface in scene:
+        if surface.mesh.is_watertight:
+            inside |= surface.mesh.contains(positions)
+    return inside
