@@ -12,7 +12,6 @@ the public functions as the guides do, "jit" compiles the whole computation as o
 
 import argparse
 import json
-import re
 import subprocess
 import sys
 import tempfile

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..scene import Camera, EnvGrid, Scene
+from ._point_lights import check_lights
 
 
 # Dr.Jit's LLVM backend aborts the whole process (an LLVM fatal error, not an exception) when the
@@ -142,12 +143,7 @@ def render_point_lights_mitsuba(scene: Scene, camera: Camera, lights, intensitie
     table lighting the object and back), a box pixel filter. The channel mean of Mitsuba's RGB
     is returned (grey albedo and white lights). Constant albedo and centred pinhole cameras only.
     """
-    lights = np.atleast_2d(np.asarray(lights, dtype=np.float64))
-    if lights.ndim != 2 or lights.shape[1] != 3 or not np.all(np.isfinite(lights)):
-        raise ValueError(f"lights must be finite world positions (L, 3), got shape {lights.shape}")
-    intensities = np.ones(len(lights)) if intensities is None else np.asarray(intensities, np.float64).reshape(-1)
-    if intensities.shape != (len(lights),) or np.any(intensities < 0):
-        raise ValueError(f"intensities must be (L,) = ({len(lights)},) non-negative, got {intensities.shape}")
+    lights, intensities = check_lights(lights, intensities)
     mitsuba_variant()
     import mitsuba as mi
 

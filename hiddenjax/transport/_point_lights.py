@@ -12,6 +12,17 @@ from ..scene import Camera, Scene
 from ._embree import RayCaster, pixel_centre_hits, primary_hits
 
 
+def check_lights(lights, intensities=None) -> tuple[np.ndarray, np.ndarray]:
+    """`lights (L, 3)` and `intensities (L,)` (default 1 W/sr) as float64, or a clear error."""
+    lights = np.atleast_2d(np.asarray(lights, dtype=np.float64))
+    if lights.ndim != 2 or lights.shape[1] != 3 or not np.all(np.isfinite(lights)):
+        raise ValueError(f"lights must be finite world positions (L, 3), got shape {lights.shape}")
+    intensities = np.ones(len(lights)) if intensities is None else np.asarray(intensities, np.float64).reshape(-1)
+    if intensities.shape != (len(lights),) or np.any(intensities < 0):
+        raise ValueError(f"intensities must be (L,) = ({len(lights)},) non-negative, got {intensities.shape}")
+    return lights, intensities
+
+
 def render_point_lights(
     scene: Scene, camera: Camera, lights, intensities=None, pixel_samples: int = 4, seed: int = 0
 ) -> np.ndarray:
@@ -19,12 +30,7 @@ def render_point_lights(
 
     `intensities (L,)` in W/sr (default 1). Pixels that see no surface are 0.
     """
-    lights = np.atleast_2d(np.asarray(lights, dtype=np.float64))
-    if lights.ndim != 2 or lights.shape[1] != 3 or not np.all(np.isfinite(lights)):
-        raise ValueError(f"lights must be finite world positions (L, 3), got shape {lights.shape}")
-    intensities = np.ones(len(lights)) if intensities is None else np.asarray(intensities, np.float64).reshape(-1)
-    if intensities.shape != (len(lights),) or np.any(intensities < 0):
-        raise ValueError(f"intensities must be (L,) = ({len(lights)},) non-negative, got {intensities.shape}")
+    lights, intensities = check_lights(lights, intensities)
     caster = RayCaster(scene)
     hits, _ = primary_hits(caster, camera, pixel_samples, seed)
     hit = hits.surface >= 0
