@@ -16,7 +16,7 @@ import numpy as np
 import optimistix as optx
 
 from ..scene import Camera, Scene
-from ._search import hard_fit, search_lights
+from ._search import containing_surface, hard_fit, search_lights
 from ._shading import ShadowScene, light_images
 
 # Culling tolerance while fitting: a skipped triangle darkens a pixel by less than 1e-6.
@@ -160,9 +160,8 @@ def fit_lights(
     if searched is not None:  # keep the soft refinement only if it explains the photo better, hard shadows
         refined = hard_fit(image, scene, shadows, positions, ambient)
         if searched.loss < refined[2]:
-            positions, log_i, a = searched.positions, np.log(np.maximum(searched.intensities, 1e-30)), 0.0
-            trajectory.append(positions)
-            return LightFit(positions, searched.intensities, np.array(history), np.stack(trajectory), temps,
+            trajectory.append(searched.positions)
+            return LightFit(searched.positions, searched.intensities, np.array(history), np.stack(trajectory), temps,
                             searched.ambient)
     return LightFit(positions, np.exp(log_i), np.array(history), np.stack(trajectory), temps, float(a * scale))
 
@@ -205,12 +204,10 @@ _gd_round = {a: jax.jit(partial(_gd_impl, fit_ambient=a), static_argnums=2) for 
 
 def _check_outside(scene: Scene, lights):
     """A light inside a closed occluder lights nothing the camera sees: refuse it up front."""
-    for k, surface in enumerate(scene):
-        mesh = surface.mesh
-        if mesh.is_watertight:
-            inside = mesh.contains(lights)
-            if np.any(inside):
-                raise ValueError(
-                    f"initial light(s) {np.nonzero(inside)[0].tolist()} lie inside surface {k} (a closed mesh); "
-                    "start them outside the occluders"
-                )
+    owner = containing_surface(scene, lights)
+    if np.any(owner >= 0):
+        k = int(owner[owner >= 0].min())
+        raise ValueError(
+            f"initial light(s) {np.nonzero(owner == k)[0].tolist()} lie inside surface {k} (a closed mesh); "
+            "start them outside the occluders"
+        )

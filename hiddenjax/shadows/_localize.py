@@ -59,12 +59,6 @@ def _chi2_quantile(df: int, p: float = CONFIDENCE) -> float:
     return float(scipy.stats.chi2.ppf(p, df))
 
 
-def _subspace_solve(N, r, rank):
-    """The minimum-norm least-squares step on the top `rank` singular directions of `N`."""
-    U, s, Vt = np.linalg.svd(N, full_matrices=True)
-    return Vt[:rank].T @ ((U[:, :rank].T @ r) / s[:rank])
-
-
 def intersect_planes(normals, offsets, *, rcond: float | None = None, anchor=None, sigma=None,
                      scale: float | None = None) -> Localization:
     """Least-squares intersection of planes `normals[k] . p = offsets[k]` (eq. 4.9), with a rank decision.
@@ -75,7 +69,8 @@ def intersect_planes(normals, offsets, *, rcond: float | None = None, anchor=Non
       `(N^T diag(sigma^-2) N)^-1` on the directions the planes determine.
     - `rcond`: if given, the thesis-style decision: singular values below `rcond` times the
       largest are dropped, whatever the residuals say.
-    - `scale`: the size of the scene in metres (default: the spread of the planes' points).
+    - `scale`: the size of the scene in metres (default 1 m; `localize_from_edges` passes the
+      spread of the edges and shadow points).
 
     **Rank decision** (without `rcond`): directions with singular values under `1e-9` of the
     largest are round-off and are not solved for. Among the rest, the weakest directions are
@@ -97,16 +92,18 @@ def intersect_planes(normals, offsets, *, rcond: float | None = None, anchor=Non
     exact = sigma is None or not np.any(np.asarray(sigma) > 0)
     w = np.ones(len(N)) if exact else 1.0 / np.maximum(np.asarray(sigma, np.float64), 1e-300)
     Nw, rw = N * w[:, None], (b - N @ anchor) * w
-    s = np.linalg.svd(Nw, compute_uv=False)
+    U, s, Vt = np.linalg.svd(Nw, full_matrices=True)
     s3 = np.zeros(3)
     s3[: len(s)] = s
+    # the minimum-norm least-squares step on the top `k` singular directions
+    step = lambda k: Vt[:k].T @ ((U[:, :k].T @ rw) / s3[:k])
     if rcond is not None:
         rank = int(np.sum(s3 > rcond * s3[0]))
     else:
         rank = int(np.sum(s3 > NUMERICAL_RCOND * s3[0]))
         if not exact:
             scale = float(scale) if scale is not None else 1.0
-            rss = lambda k: float(np.sum((Nw @ _subspace_solve(Nw, rw, k) - rw) ** 2))
+            rss = lambda k: float(np.sum((Nw @ step(k) - rw) ** 2))
             full = rss(rank)
             for k in range(rank - 1, 0, -1):
                 undetermined = 1.0 / s3[k] > scale  # std along the weakest kept direction, metres
@@ -114,8 +111,7 @@ def intersect_planes(normals, offsets, *, rcond: float | None = None, anchor=Non
                 if not (undetermined and fits):
                     break
                 rank = k
-    _, _, Vt = np.linalg.svd(Nw, full_matrices=True)
-    point = anchor + _subspace_solve(Nw, rw, rank)
+    point = anchor + step(rank)
     direction = Vt[2] if rank == 2 else np.zeros(3)
     normal = Vt[0] if rank == 1 else np.zeros(3)
     covariance = np.zeros((3, 3)) if exact else (Vt[:rank].T / s3[:rank] ** 2) @ Vt[:rank]

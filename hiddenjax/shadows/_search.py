@@ -40,6 +40,13 @@ class LightSearch(NamedTuple):
     box: np.ndarray
 
 
+def _occluder_bounds(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Min and max corners `(3,)` of the occluders: the surfaces not observed, or all when all are."""
+    occluders = [s for s in scene if not s.observe] or list(scene)
+    points = np.concatenate([np.asarray(s.triangles).reshape(-1, 3) for s in occluders])
+    return points.min(axis=0), points.max(axis=0)
+
+
 def default_box(scene: Scene) -> np.ndarray:
     """A search region above the occluders: `(2, 3)` min and max corners, metres.
 
@@ -47,9 +54,7 @@ def default_box(scene: Scene) -> np.ndarray:
     all are observed; with extent `s` (largest side of their bounding box) and top `y1`, the box
     spans `+-4 s` around their centre in x and z and `[y1 + s/4, y1 + 6 s]` in height.
     """
-    occluders = [s for s in scene if not s.observe] or list(scene)
-    points = np.concatenate([np.asarray(s.triangles).reshape(-1, 3) for s in occluders])
-    lo, hi = points.min(axis=0), points.max(axis=0)
+    lo, hi = _occluder_bounds(scene)
     size = float(np.max(hi - lo))
     centre = (lo + hi) / 2
     return np.array([[centre[0] - 4 * size, hi[1] + 0.25 * size, centre[2] - 4 * size],
@@ -139,12 +144,9 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
     if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] <= box[0]):
         raise ValueError(f"box must be (2, 3) finite min and max corners with max > min, got {box.tolist()}")
     shadows = ShadowScene.from_scene(scene, camera, mask) if shadows is None else shadows
-    image = np.asarray(image, np.float64)
-    if image.ndim == 3:
-        image = image.mean(axis=-1)
-    if image.shape != shadows.image_shape or not np.all(np.isfinite(image)):
-        raise ValueError(f"image must be finite with the camera's shape {shadows.image_shape}, got {image.shape}")
-    y = image.reshape(-1)[np.asarray(shadows.pixels)]
+    y = np.asarray(shadows.image_to_rows(image), np.float64)
+    if not np.all(np.isfinite(y)):
+        raise ValueError("image contains non-finite values at the fitted pixels")
     norm = float(y @ y)
     if not norm > 0:
         raise ValueError("the image is black over the fitted pixels: there is nothing to fit")
@@ -177,9 +179,7 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
             spacing = spacing / 2
         return chosen, columns, _fit(columns, y, ambient)[2], scored
 
-    occluders = [s for s in scene if not s.observe] or list(scene)
-    corners = np.concatenate([np.asarray(s.triangles).reshape(-1, 3) for s in occluders])
-    centre = (corners.min(axis=0) + corners.max(axis=0)) / 2
+    centre = np.mean(_occluder_bounds(scene), axis=0)
     offsets = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     best_run = None
     first = _single_losses(images, y, ambient)
@@ -200,18 +200,22 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
 def hard_fit(image, scene: Scene, shadows: ShadowScene, positions, ambient: bool = True):
     """`(intensities, ambient, loss)` of lights at `positions (L, 3)` under hard (Embree) shadows,
     with the intensities and the ambient fitted in closed form; `loss = |r|^2 / |y|^2`."""
-    image = np.asarray(image, np.float64)
-    image = image.mean(axis=-1) if image.ndim == 3 else image
-    y = image.reshape(-1)[np.asarray(shadows.pixels)]
+    y = np.asarray(shadows.image_to_rows(image), np.float64)
     columns = _unit_images(RayCaster(scene), shadows, np.atleast_2d(np.asarray(positions, np.float64))).T
     intensities, a, rss = _fit(columns, y, ambient)
     return intensities, a, rss / float(y @ y)
 
 
-def _inside_occluders(scene: Scene, positions: np.ndarray) -> np.ndarray:
-    """`(C,)` True where a position lies inside a closed mesh of the scene (no light can be there)."""
-    inside = np.zeros(len(positions), dtype=bool)
-    for surface in scene:
+def containing_surface(scene: Scene, positions: np.ndarray) -> np.ndarray:
+    """`(C,)` index of the first closed mesh of the scene that contains each position, -1 where none
+    (no light can be inside an occluder)."""
+    owner = np.full(len(positions), -1)
+    for k, surface in enumerate(scene):
         if surface.mesh.is_watertight:
-            inside |= surface.mesh.contains(positions)
-    return inside
+            owner[(owner < 0) & surface.mesh.contains(positions)] = k
+    return owner
+
+
+def _inside_occluders(scene: Scene, positions: np.ndarray) -> np.ndarray:
+    """`(C,)` True where a position lies inside a closed mesh of the scene."""
+    return containing_surface(scene, positions) >= 0

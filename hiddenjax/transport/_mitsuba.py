@@ -75,6 +75,40 @@ def upsample_for_mitsuba(envmap, factor: int = 8) -> np.ndarray:
     return np.ascontiguousarray(np.repeat(env[cell], factor, axis=1))
 
 
+def _scene_dict(mi, scene: Scene, camera: Camera, folder: Path, integrator: dict) -> dict:
+    """Mitsuba's scene dictionary for our surfaces (PLY files written to `folder`), camera and integrator.
+
+    Emitters are the caller's. Constant albedo and a centred pinhole camera with square pixels only.
+    """
+    fx, fy, cx, cy = np.asarray(camera.intrinsics, dtype=np.float64)
+    if not (np.isclose(fx, fy) and np.isclose(cx, camera.width / 2) and np.isclose(cy, camera.height / 2)):
+        raise ValueError("Mitsuba export needs square pixels and a centred principal point")
+    R = np.asarray(camera.rotation, dtype=np.float64)
+    origin = np.asarray(camera.origin, dtype=np.float64)
+    shapes = {}
+    for k, surface in enumerate(scene):
+        if surface.albedo.ndim != 0:
+            raise ValueError("Mitsuba export supports constant albedo only")
+        path = folder / f"surface{k}.ply"
+        surface.mesh.export(path)
+        shapes[f"surface{k}"] = {
+            "type": "ply", "filename": str(path), "face_normals": True,
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": float(surface.albedo)}},
+        }
+    return {
+        "type": "scene",
+        "integrator": integrator,
+        "sensor": {
+            "type": "perspective", "fov": float(np.degrees(2 * np.arctan(camera.width / (2 * fx)))), "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=(origin + R[2]).tolist(),
+                                                       up=(-R[1]).tolist()),
+            "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+        },
+        **shapes,
+    }
+
+
 class MitsubaRenderer:
     """A Mitsuba scene built from ours; `render(envmap, spp)` re-lights it without reloading meshes.
 
@@ -89,38 +123,13 @@ class MitsubaRenderer:
 
         self._mi = mi
         self.grid, self.upsample = grid, upsample
-        fx, fy, cx, cy = np.asarray(camera.intrinsics, dtype=np.float64)
-        if not (np.isclose(fx, fy) and np.isclose(cx, camera.width / 2) and np.isclose(cy, camera.height / 2)):
-            raise ValueError("Mitsuba export needs square pixels and a centred principal point")
-        R = np.asarray(camera.rotation, dtype=np.float64)
-        origin = np.asarray(camera.origin, dtype=np.float64)
-        fov = np.degrees(2 * np.arctan(camera.width / (2 * fx)))
         self._tmp = tempfile.TemporaryDirectory(prefix="hiddenjax-mitsuba-")
-        shapes = {}
-        for k, surface in enumerate(scene):
-            if surface.albedo.ndim != 0:
-                raise ValueError("Mitsuba export supports constant albedo only")
-            path = Path(self._tmp.name) / f"surface{k}.ply"
-            surface.mesh.export(path)
-            shapes[f"surface{k}"] = {
-                "type": "ply", "filename": str(path), "face_normals": True,
-                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": float(surface.albedo)}},
-            }
         integ = {"type": integrator}
         if integrator == "path":
             integ["max_depth"] = int(max_depth)
         self.scene = mi.load_dict({
-            "type": "scene",
-            "integrator": integ,
-            "sensor": {
-                "type": "perspective", "fov": float(fov), "fov_axis": "x",
-                "to_world": mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=(origin + R[2]).tolist(),
-                                                           up=(-R[1]).tolist()),
-                "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
-                         "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-            },
+            **_scene_dict(mi, scene, camera, Path(self._tmp.name), integ),
             "env": {"type": "envmap", "bitmap": mi.Bitmap(upsample_for_mitsuba(np.ones(grid.shape), upsample))},
-            **shapes,
         })
         self.params = mi.traverse(self.scene)
 
@@ -147,37 +156,11 @@ def render_point_lights_mitsuba(scene: Scene, camera: Camera, lights, intensitie
     mitsuba_variant()
     import mitsuba as mi
 
-    fx, fy, cx, cy = np.asarray(camera.intrinsics, dtype=np.float64)
-    if not (np.isclose(fx, fy) and np.isclose(cx, camera.width / 2) and np.isclose(cy, camera.height / 2)):
-        raise ValueError("Mitsuba export needs square pixels and a centred principal point")
-    R = np.asarray(camera.rotation, dtype=np.float64)
-    origin = np.asarray(camera.origin, dtype=np.float64)
     with tempfile.TemporaryDirectory(prefix="hiddenjax-mitsuba-") as tmp:
-        shapes = {}
-        for k, surface in enumerate(scene):
-            if surface.albedo.ndim != 0:
-                raise ValueError("Mitsuba export supports constant albedo only")
-            path = Path(tmp) / f"surface{k}.ply"
-            surface.mesh.export(path)
-            shapes[f"surface{k}"] = {
-                "type": "ply", "filename": str(path), "face_normals": True,
-                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": float(surface.albedo)}},
-            }
         emitters = {f"light{k}": {"type": "point", "position": p.tolist(),
                                   "intensity": {"type": "rgb", "value": float(i)}}
                     for k, (p, i) in enumerate(zip(lights, intensities))}
-        mscene = mi.load_dict({
-            "type": "scene",
-            "integrator": {"type": "path", "max_depth": int(max_depth)},
-            "sensor": {
-                "type": "perspective", "fov": float(np.degrees(2 * np.arctan(camera.width / (2 * fx)))),
-                "fov_axis": "x",
-                "to_world": mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=(origin + R[2]).tolist(),
-                                                           up=(-R[1]).tolist()),
-                "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
-                         "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-            },
-            **emitters, **shapes,
-        })
+        integrator = {"type": "path", "max_depth": int(max_depth)}
+        mscene = mi.load_dict({**_scene_dict(mi, scene, camera, Path(tmp), integrator), **emitters})
         image = np.array(mi.render(mscene, spp=spp, seed=seed), dtype=np.float32)
     return image.mean(axis=-1)
