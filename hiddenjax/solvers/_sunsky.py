@@ -301,7 +301,13 @@ def _angle_std(gram, grid, angles, active, s, rss, n):
     free = jnp.repeat(active, 2)
     H = jnp.where(free[:, None] & free[None, :], H, jnp.eye(H.shape[0], dtype=dtype))
     dof = jnp.maximum(n - jnp.sum(active) * (2 + s.shape[1]), 1)
-    cov = (rss.sum() / dof) * jnp.linalg.inv(H)
-    var = jnp.diag(cov).reshape(-1, 2)
+    # H = J^T A^T A J is positive semidefinite, but float32's inv of a near-singular H can put a negative
+    # variance on its diagonal (then clamped to a confident 0). Equilibrated (unit diagonal), then inverted
+    # through its eigenvalues floored at the dtype's resolution of the largest, a direction the data hardly
+    # constrain gets a large variance instead.
+    d = jnp.sqrt(jnp.maximum(jnp.diag(H), jnp.finfo(dtype).tiny))
+    e, V = jnp.linalg.eigh(H / (d[:, None] * d[None, :]))
+    e = jnp.maximum(e, jnp.finfo(dtype).eps * H.shape[0] * jnp.max(e))
+    var = ((rss.sum() / dof) * jnp.sum(V**2 / e[None, :], axis=1) / d**2).reshape(-1, 2)
     std = jnp.sqrt(jnp.maximum(var[:, 0] + jnp.sin(angles[:, 0]) ** 2 * var[:, 1], 0.0))
     return jnp.where(active, std, 0.0)
