@@ -26,6 +26,9 @@ from ._adam import AdamSolution as AdamSolution
 from ._adam import solve_illumination_adam as solve_illumination_adam
 from ._adam import AdamProblem as AdamProblem
 from ._weights import choose_weights as choose_weights
+from ._cross_validation import CrossValidation as CrossValidation
+from ._cross_validation import cross_validate as cross_validate
+from ._cross_validation import held_out_error as held_out_error
 from ._scene_params import SceneParams as SceneParams
 from ._scene_params import SceneUncertainty as SceneUncertainty
 from ._scene_model import SceneModel as SceneModel

@@ -42,6 +42,10 @@ class Prior(eqx.Module):
         return False
 
     @abc.abstractmethod
+    def scaled(self, factor) -> "Prior":
+        """The same prior with every regularization weight times `factor` (for choosing the weights' scale)."""
+
+    @abc.abstractmethod
     def normal_matrix(self, Ts, gram):
         """`(B, smooth, ridge)`: the normal matrix of the prior's quadratic part and its absolute L2 weights."""
 
@@ -82,6 +86,9 @@ class L2Prior(Prior):
             raise ValueError(f"reweight must be a number of iterations >= 0, got {self.reweight}")
         if not isinstance(self.floor, jax.core.Tracer) and not (np.isfinite(self.floor) and self.floor > 0):
             raise ValueError(f"floor must be a finite, positive fraction of the mean radiance, got {self.floor}")
+
+    def scaled(self, factor) -> "L2Prior":
+        return eqx.tree_at(lambda p: (p.smooth, p.ridge), self, (self.smooth * factor, self.ridge * factor))
 
     def normal_matrix(self, Ts, gram):
         ls, lr = regularization_weights(Ts, self.smooth, self.ridge, self.absolute)

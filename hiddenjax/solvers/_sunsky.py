@@ -73,6 +73,9 @@ class SunSkyPrior(Prior):
         if self.max_sources < 0:
             raise ValueError(f"max_sources must be >= 0, got {self.max_sources}")
 
+    def scaled(self, factor) -> "SunSkyPrior":
+        return eqx.tree_at(lambda p: p.sky, self, self.sky.scaled(factor))
+
     def normal_matrix(self, Ts, gram):
         return self.sky.normal_matrix(Ts, gram)
 

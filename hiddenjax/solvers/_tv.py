@@ -99,6 +99,9 @@ class TVPrior(Prior):
     def independent_columns(self) -> bool:
         return True
 
+    def scaled(self, factor) -> "TVPrior":
+        return eqx.tree_at(lambda p: (p.weight, p.ridge), self, (self.weight * factor, self.ridge * factor))
+
     def _absolute(self, Ts):
         scale, lr = regularization_weights(Ts, 1.0, self.ridge)
         return scale, lr, self.rho * scale
