@@ -74,7 +74,8 @@ def block_folds(T: TransportMatrix, block: int = 8, folds: int = 4, seed: int = 
 def _solve_without(T, gram, held_out, prior, image, nonneg):
     """The map from the photo without the observed pixels `held_out (P,)`: their rows of `A` and of the
     photo are zero, which adds nothing to `A^T A`, `A^T y` or the weights' scale `mean(diag(A^T A))`,
-    so this is the solve on the other pixels alone, with one compiled program for every fold."""
+    so this is the solve on the other pixels alone, with one compiled program for every fold (exactly,
+    for the L2, HDR and TV priors; `sunsky`'s BIC also counts the zero rows among its residuals)."""
     keep = (~held_out).astype(T.A.dtype)
     T_in = eqx.tree_at(lambda t: t.A, T, T.A * keep[:, None])
     mask = T.rows_to_image(keep)
