@@ -5,15 +5,14 @@
 For each object (the teapot and sphere fixtures on a plane, 128x128 pixels, a 32x64 grid) and each
 development HDRI (`data_fixtures/hdri/`), the photo comes from the independent reference renderer
 with the 256x128 panorama (never `A x`). The default prior (`hdr_prior()`, eq. 5.3 with the
-log-domain smoothness) solves it at each relative `smooth` of a half-decade grid; the *oracle*
+log-domain smoothness) solves it at each relative `smooth` of a grid a quarter decade apart; the *oracle*
 weight is the one with the best tone-mapped SSIM against the truth (which a user never has).
 Cross-validation over held-out pixel blocks (`hj.solvers.cross_validate`: `--block` pixels square,
 `--folds` folds dealt at random, seed 0) solves the same prior without each fold's pixels and
 predicts them; the weight with the smallest held-out error is its choice, under each error
 measure of `hj.solvers.held_out_error` (squared, absolute, relative to the pixel's radiance, of
-log radiance). Reported: each rule's choice,
-its ratio to the oracle weight, and the tone-mapped SSIM of the map it gives, beside the fixed
-default weight. Writes a plot of tone-mapped SSIM against the weight per HDRI and `results.json`.
+log radiance). Reported: each rule's choice, its ratio to the oracle weight, and the tone-mapped
+SSIM of the map it gives, beside the fixed default weight. Writes a plot of tone-mapped SSIM against the weight per HDRI and `results.json`.
 """
 
 import argparse
@@ -35,7 +34,7 @@ from _report import Table  # noqa: E402  (benchmarks/ is on sys.path when run as
 HDRI = Path(__file__).resolve().parents[1] / "data_fixtures" / "hdri"
 NAMES = ("adams_place_bridge", "dikhololo_night", "forest_slope", "immenstadter_horn", "lebombo",
          "potsdamer_platz", "studio_small_03")
-WEIGHTS = (0.056, 0.1, 0.18, 0.3, 0.56, 1.0, 1.8, 3.0)  # half a decade apart
+WEIGHTS = (0.056, 0.1, 0.18, 0.3, 0.56, 1.0, 1.8, 3.0)  # a quarter decade apart
 
 
 def main(argv=None):

@@ -13,7 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Float, Int
 
 from ..transport import TransportMatrix
 from ._illumination import IlluminationOperator, Prior, _check_image, as_prior, gram_matrix
@@ -132,7 +132,8 @@ def cross_validate(
         raise ValueError(f"{fold.size} observed pixels in blocks of {block} do not fill {folds} folds (pixels per "
                          f"fold: {counts.tolist()}): use smaller blocks or fewer folds")
     gram = gram_matrix(T.A)
-    parts = [(gram - gram_matrix(T.A[fold == f]), T.A[fold == f], fold == f) for f in range(folds)]
+    parts = [(gram - gram_matrix(T.A[fold == f]), T.A[fold == f], fold == f, jnp.asarray(fold == f))
+             for f in range(folds)]
     image = jnp.asarray(image, T.A.dtype)
     predictions = np.full((scales.size,) + y.shape, np.nan)
     for k, s in enumerate(scales):
@@ -140,8 +141,8 @@ def cross_validate(
         candidate = jax.tree.map(lambda v: jnp.asarray(v, T.A.dtype) if isinstance(v, float) else v,
                                  prior.scaled(float(s)))
         try:
-            for gram_in, A_out, out in parts:
-                x = _solve_without(T, gram_in, jnp.asarray(out), candidate, image, nonneg)
+            for gram_in, A_out, out, held_out in parts:
+                x = _solve_without(T, gram_in, held_out, candidate, image, nonneg)
                 x = x.reshape((T.grid.size,) + y.shape[1:])
                 predictions[k, out] = np.asarray(A_out @ x)
         except eqx.EquinoxRuntimeError:  # weights too small to factor in this dtype: not a candidate
