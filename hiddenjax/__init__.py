@@ -18,6 +18,7 @@ from . import corners as corners
 from . import cues as cues
 from . import io as io
 from . import metrics as metrics
+from . import photo as photo
 from . import scene as scenes
 from . import shadows as shadows
 from . import solvers as solvers

@@ -55,12 +55,7 @@ import trimesh
 from .scene import FIXTURES, Camera, EnvGrid, Scene, Surface, ground_plane, load_mesh
 from .scene import fixture as _fixture
 from .transport import DEFAULT_PIXEL_SAMPLES, DEFAULT_SAMPLES
-from .io import read_image
-
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib
+from .io import read_image, read_toml
 
 MESH_FIXTURES = ("plane",) + tuple(sorted(FIXTURES))
 
@@ -166,12 +161,7 @@ def load_scene(path) -> SceneFile:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"scene file not found: {path}")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"{path}: malformed TOML: {e}") from e
-    except UnicodeDecodeError as e:
-        raise ValueError(f"{path}: not a text (UTF-8) TOML file: {e}") from e
+    data = read_toml(path)
     top = _Table(data, "", path)
     version = top.get("hiddenjax", 1)
     if version != 1:

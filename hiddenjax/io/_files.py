@@ -40,3 +40,20 @@ def write_text(path, text: str) -> None:
     """Write a text file atomically (`atomic_path`)."""
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)
+
+
+def read_toml(path) -> dict:
+    """Read a TOML file; a missing, unreadable or malformed file is a `ValueError` naming it."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"file not found: {path}")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{path}: malformed TOML: {e}") from e
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a text (UTF-8) TOML file: {e}") from e

@@ -1,0 +1,67 @@
+"""Photos of the board rendered by ray casting: test data for calibration and pose, independent of OpenCV's projection.
+
+Each pixel is the box-filtered mean over `samples x samples` stratified rays (docs/conventions.md,
+"Camera"): a ray from the camera's centre meets the table plane y = 0, where the radiance is
+`irradiance * rho / pi` with `rho` the board's printed reflectance (black or white) inside the
+board and `table` outside it.
+"""
+
+import cv2
+import numpy as np
+
+from ..scene import Camera
+from ._board import Board
+
+
+def render_board_photo(
+    board: Board,
+    camera: Camera,
+    *,
+    distortion=None,
+    samples: int = 3,
+    irradiance: float = np.pi,
+    black: float = 0.05,
+    white: float = 0.85,
+    table: float = 0.3,
+    texture_resolution: float = 8000.0,
+) -> np.ndarray:
+    """Linear radiance `(H, W)` of the board on the table seen by `camera`.
+
+    `distortion` (OpenCV's `k1, k2, p1, p2, k3`) renders the photo a lens with that distortion
+    would take: each sample's pixel position is undistorted (`cv2.undistortPoints`) before its ray
+    is cast. `texture_resolution` is the board pattern's pixels per metre (nearest lookup).
+    """
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
+    texture = board.texture(texture_resolution)
+    rho = np.where(texture > 0.5, white, black).astype(np.float32)
+    W, D = board.size
+    fx, fy, cx, cy = (float(v) for v in np.asarray(camera.intrinsics))
+    Rt = np.asarray(camera.rotation, dtype=np.float64).T
+    origin = np.asarray(camera.origin, dtype=np.float64)
+    K_cv = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1.0]])
+    offsets = (np.arange(samples) + 0.5) / samples
+    u, v = np.meshgrid(offsets, offsets, indexing="ij")
+    out = np.zeros((camera.height, camera.width), dtype=np.float32)
+    cols = np.arange(camera.width, dtype=np.float64)
+    for r in range(camera.height):
+        rows_s = (r + u.reshape(-1, 1)) * np.ones((1, camera.width))  # (S, W) continuous row
+        cols_s = v.reshape(-1, 1) + cols[None, :]
+        if distortion is None:
+            xn, yn = (cols_s - cx) / fx, (rows_s - cy) / fy
+        else:
+            pts = np.stack([cols_s - 0.5, rows_s - 0.5], -1).reshape(-1, 1, 2)
+            und = cv2.undistortPoints(pts, K_cv, np.asarray(distortion, dtype=np.float64)).reshape(cols_s.shape + (2,))
+            xn, yn = und[..., 0], und[..., 1]
+        d = np.stack([xn, yn, np.ones_like(xn)], -1) @ Rt.T  # world directions (unnormalised)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = -origin[1] / d[..., 1]
+        hit = s > 0
+        x = origin[0] + s * d[..., 0] + W / 2
+        z = origin[2] + s * d[..., 2] + D / 2
+        on = hit & (x >= 0) & (x < W) & (z >= 0) & (z < D)
+        i = np.clip((z * texture_resolution).astype(np.int64), 0, rho.shape[0] - 1)
+        j = np.clip((x * texture_resolution).astype(np.int64), 0, rho.shape[1] - 1)
+        value = np.where(on, rho[i, j], np.where(hit, table, 0.0))
+        out[r] = irradiance / np.pi * value.mean(axis=0)
+    return out
