@@ -8,6 +8,8 @@
     hiddenjax demo [--quick] [--out DIR]
     hiddenjax board -o board.png [--pdf board.pdf] [--squares C R] [--square M] [--marker M] [--dpi D]
     hiddenjax calibrate board.toml photo... -o camera.toml [--sheet check.png]
+    hiddenjax reconstruct board.toml photo... --object MESH --at X Z [--yaw DEG] [--size M]
+                          (--intrinsics camera.toml | --fov DEG) [--times T...] -o out/
 
 Exit status 0 on success, 1 when the input is bad (one line on stderr says what and how to fix
 it; no output file is left behind), 2 for a malformed command line.
@@ -20,6 +22,7 @@ import time
 import warnings
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from . import __version__
@@ -27,7 +30,7 @@ from . import cues as _cues
 from . import io
 from . import metrics
 from . import photo as _photo
-from .scene import EnvGrid, object_on_plane, procedural_sky
+from .scene import FIXTURES, EnvGrid, object_on_plane, procedural_sky
 from .solvers import DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior
 from ._scene_file import load_scene
 from .transport import TransportMatrix, reference_render, render, transport_matrix
@@ -284,6 +287,108 @@ def _write_detections(path, b, images, names) -> None:
     io.contact_sheet(path, panels, height=360, columns=min(len(panels), 4))
 
 
+def reconstruct(args) -> dict:
+    """`hiddenjax reconstruct`: one capture (a photo or a bracket) to the environment map."""
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output {out} exists and is not a folder")
+    if not out.parent.is_dir():
+        raise ValueError(f"output folder {out.parent} does not exist; create it first")
+    b = _photo.Board.load(args.board)
+    photo = _read_capture(args.photos, args.times, args.srgb, args.response)
+    H0, W0 = photo.radiance.shape[:2]
+    if args.intrinsics is not None:
+        intr = _photo.Intrinsics.load(args.intrinsics)
+    elif args.fov is not None:
+        if not 0 < args.fov < 180:
+            raise ValueError(f"--fov is the horizontal field of view in degrees, in (0, 180); got {args.fov}")
+        f = W0 / (2 * np.tan(np.radians(args.fov) / 2))
+        intr = _photo.Intrinsics(np.array([[f, 0, W0 / 2 - 0.5], [0, f, H0 / 2 - 0.5], [0, 0, 1.0]]), np.zeros(5), W0, H0)
+    else:
+        raise ValueError("give the camera: --intrinsics camera.toml (from `hiddenjax calibrate`) or --fov DEGREES")
+    mask = None
+    if args.object_mask is not None:
+        mask = io.read_image(args.object_mask) > 0.5
+    grid = EnvGrid(*args.grid)
+    t0 = time.perf_counter()
+    rec = _photo.reconstruct(
+        b, photo.radiance, intr, args.object, _photo.Placement(args.at[0], args.at[1], args.yaw),
+        size=args.size, scale=args.scale, saturated=photo.saturated, object_mask=mask, refine=not args.no_refine,
+        width=args.width, grid=grid, samples=args.samples, pixel_samples=args.pixel_samples, prior=args.prior,
+        albedo=args.albedo, seed=args.seed, progress=not args.quiet,
+    )
+    seconds = time.perf_counter() - t0
+    sheet = _capture_sheet(b, photo.radiance, intr, rec)
+    mesh_name = args.object if args.object in FIXTURES else str(Path(args.object).resolve())
+    toml = _photo.scene_toml(rec, mesh_name, grid, args.samples, args.pixel_samples, args.seed, args.size,
+                             args.scale, args.albedo)
+    out.mkdir(exist_ok=True)  # every check passed: only now is anything written
+    io.write_png(out / "mask.png", rec.mask.astype(np.uint8) * 255)
+    io.write_text(out / "scene.toml", toml)
+    rec.T.save(out / "A.npz")
+    io.write_exr(out / "env.exr", rec.env)
+    io.write_png(out / "env.png", rec.env)
+    io.write_exr(out / "photo.exr", rec.photo)
+    cue_summary, _ = _write_cues(out, rec.T, rec.photo, DEFAULT_RIDGE)
+    io.contact_sheet(out / "check.png", sheet, height=300)
+    p, r = rec.placement, rec.refinement
+    results = dict(
+        pose=dict(R=rec.pose.R.tolist(), t=rec.pose.t.tolist(), camera_origin=rec.pose.origin.tolist(),
+                  reprojection_error_px=rec.pose.reprojection_error, corners=rec.pose.corners),
+        placement=dict(x=p.x, z=p.z, yaw_deg=p.yaw),
+        refinement=None if r is None else dict(iou=r.iou, initial_iou=r.initial_iou),
+        observed_pixels=int(rec.mask.sum()), seconds=seconds, cues=cue_summary,
+    )
+    io.write_text(out / "results.json", json.dumps(results, indent=2))
+    moved = "" if r is None else (f"; object refined to x {p.x:.4f} m, z {p.z:.4f} m, yaw {p.yaw:.1f} deg "
+                                  f"(outline overlap {r.initial_iou:.2f} -> {r.iou:.2f})")
+    print(f"wrote {out}/: board found ({rec.pose.corners} corners, {rec.pose.reprojection_error:.2f} px){moved}; "
+          f"{int(rec.mask.sum())} table pixels observed, {grid.height}x{grid.width} map in {seconds:.1f} s; "
+          f"check {out}/check.png")
+    return results
+
+
+def _read_capture(paths, times, srgb, response):
+    """One photo, or a bracket merged to linear radiance (times from --times or the files' EXIF)."""
+    srgb = True if srgb else None
+    if len(paths) == 1:
+        if times:
+            raise ValueError("--times is for a bracket of several photos; drop it for one photo")
+        return _photo.read_photo(paths[0], srgb=srgb)
+    if times:
+        if len(times) != len(paths):
+            raise ValueError(f"--times gives {len(times)} exposure times for {len(paths)} photos")
+    else:
+        times = [_photo.exposure_time(p) for p in paths]
+        if any(t is None for t in times):
+            raise ValueError("the bracket's exposure times are not in the files' EXIF; give them with --times")
+    images = [io.read_image(p) for p in paths]
+    if response is None:
+        eight_bit = [p for p in paths if cv2.imread(str(p), cv2.IMREAD_UNCHANGED).dtype == np.uint8]
+        response = "srgb" if eight_bit else "linear"
+        if eight_bit:
+            warnings.warn(f"the bracket has 8-bit photos ({Path(eight_bit[0]).name}, ...): merged through the sRGB "
+                          f"curve; --response debevec recovers the camera's own curve", UserWarning, stacklevel=2)
+    return _photo.merge_exposures(images, times, response=response)
+
+
+def _capture_sheet(b, radiance, intr, rec) -> list:
+    """Panels that show at once whether the calibration and placement are right."""
+    drawn = _photo.draw_detection(radiance, _photo.detect(b, radiance), rec.pose, b)
+    outline = _photo.silhouette(rec.scene[1].mesh, rec.refine_camera)  # the object where it was placed
+    outline = cv2.resize((outline > 0.5).astype(np.uint8), (drawn.shape[1], drawn.shape[0]), interpolation=cv2.INTER_NEAREST)
+    contours, _ = cv2.findContours(outline, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if np.any(intr.distortion):  # the outline is drawn in the undistorted photo's pixels
+        drawn = intr.undistort(drawn)
+    cv2.drawContours(drawn, contours, -1, (255, 0, 255), max(1, drawn.shape[1] // 640), cv2.LINE_AA)
+    observed = np.where(rec.mask[..., None] if rec.photo.ndim == 3 else rec.mask, rec.photo, np.nan)
+    return [
+        ("board (green corners, yellow outline)\nobject outline (magenta)", (drawn / 255.0) ** 2.2, "radiance", 1.0),
+        ("observed table pixels\n(grey: not used)", observed),
+        ("environment map", rec.env),
+    ]
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="hiddenjax", description=__doc__.split("\n\n")[0],
                      epilog="Images: " + IMAGE_HELP + ". Run `hiddenjax COMMAND --help` for each command.")
@@ -372,6 +477,39 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="output camera .toml")
     p.add_argument("--sheet", help="also a PNG contact sheet of the corners found in each photo")
     p.set_defaults(run=calibrate)
+
+    p = sub.add_parser("reconstruct", help="a photo of an object beside the board -> the environment map",
+                       description="The board's pose gives the camera, the object's outline refines where it stands, "
+                                   "the plain table around it is solved for the light. Writes the inferred scene file, "
+                                   "A.npz, the map (EXR, PNG), the cue maps and check.png, which shows the board and "
+                                   "object outline found in the photo.")
+    p.add_argument("board", help="board description (.toml from `hiddenjax board`)")
+    p.add_argument("photos", nargs="+", help="the photo, or a bracket of exposures of one view: " + IMAGE_HELP)
+    p.add_argument("--object", required=True, help="the object's mesh file (OBJ, PLY, GLB, ...) or a fixture name")
+    p.add_argument("--at", type=float, nargs=2, required=True, metavar=("X", "Z"),
+                   help="where the object stands, metres from the board's centre (x along its rows, z down its columns)")
+    p.add_argument("--yaw", type=float, default=0.0, help="the object's turn about +y in degrees (default 0)")
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--size", type=float, help="the object's largest extent in metres")
+    size.add_argument("--scale", type=float, help="mesh units to metres (default 1: the mesh is in metres)")
+    p.add_argument("--intrinsics", help="camera .toml from `hiddenjax calibrate`")
+    p.add_argument("--fov", type=float, help="without a calibration: the horizontal field of view in degrees")
+    p.add_argument("--times", type=float, nargs="+", help="exposure times (s) of a bracket (default: EXIF)")
+    p.add_argument("--response", choices=_photo.RESPONSES, help="a bracket's camera response (default: srgb for "
+                   "8-bit photos, linear otherwise; debevec recovers it from the bracket)")
+    p.add_argument("--object-mask", help="the object's pixels (white) in the photo, when it is not darker than the table")
+    p.add_argument("--no-refine", action="store_true", help="keep the stated place (no outline matching)")
+    p.add_argument("--width", type=int, default=128, help="pixels across for the solve (default 128)")
+    p.add_argument("--grid", type=int, nargs=2, default=(32, 64), metavar=("H", "W"), help="env grid (default 32 64)")
+    p.add_argument("--prior", choices=PRIORS, default=None, help=f"the prior (default {DEFAULT_PRIOR})")
+    p.add_argument("--albedo", type=float, default=1.0, help="the table's albedo (default 1: map in relative units)")
+    p.add_argument("--samples", type=int, default=16, help="directions per env pixel (default 16)")
+    p.add_argument("--pixel-samples", type=int, default=4, help="footprint samples per pixel (default 4)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("-o", "--output", required=True, help="output folder (created)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    photo_options(p)
+    p.set_defaults(run=reconstruct)
     return parser
 
 

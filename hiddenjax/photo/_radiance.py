@@ -5,10 +5,11 @@ so every photo is returned divided by its exposure time: brackets of one scene t
 `hj.solve_illumination` sees one radiance scale. Saturated pixels (a channel at or above
 `saturation` of the file's full scale) carry no value and are returned in a mask, never used.
 
-Brackets (`merge_exposures`): linear captures merge as the weighted mean
-`L = sum_k w_k v_k / t_k / sum_k w_k`, `w_k` a hat over the valid range that is zero at saturation;
-8-bit photos go through OpenCV's Debevec-Malik response recovery (`cv2.createCalibrateDebevec`,
-`cv2.createMergeDebevec`), whose radiance is known up to one global scale.
+Brackets (`merge_exposures`): linear values `v_k` (as stored, or through the sRGB curve) merge as
+the weighted mean `L = sum_k w_k v_k / t_k / sum_k w_k`, `w_k` a hat over the valid range that is
+zero at saturation; or the camera's response is recovered from the bracket by OpenCV's
+Debevec-Malik (`cv2.createCalibrateDebevec`, `cv2.createMergeDebevec`), whose radiance is known up
+to a scale per channel.
 """
 
 import warnings
@@ -107,14 +108,20 @@ def _saturated(stored: np.ndarray, saturation: float) -> np.ndarray:
     return s.any(axis=-1) if s.ndim == 3 else s
 
 
-def merge_exposures(images, times, linear: bool = True, saturation: float = 0.98) -> Photo:
+RESPONSES = ("linear", "srgb", "debevec")
+
+
+def merge_exposures(images, times, response: str = "linear", saturation: float = 0.98) -> Photo:
     """Merge a bracket of one scene into one linear radiance photo (module docstring).
 
     `images`: photos as arrays of the stored values scaled to `[0, 1]` (what `hj.io.read_image`
-    returns) or uint8 arrays; `times`: their exposure times in seconds. `linear=True` takes the
-    values as linear (raw, 16-bit); `linear=False` recovers the camera response (Debevec) from
-    8-bit photos. A pixel saturated in every photo of the bracket is marked saturated.
+    returns) or uint8 arrays; `times`: their exposure times in seconds. `response` says how stored
+    values relate to light: "linear" (raw, 16-bit linear), "srgb" (the sRGB curve, as most 8-bit
+    photos are encoded), or "debevec" (recovered from the bracket by OpenCV's Debevec-Malik, per
+    channel, so the colour balance is not recovered). A pixel saturated in every photo is marked.
     """
+    if response not in RESPONSES:
+        raise ValueError(f"response must be one of {RESPONSES}, got {response!r}")
     images = [np.asarray(a) for a in images]
     times = np.asarray(times, dtype=np.float64).reshape(-1)
     if len(images) < 2:
@@ -125,21 +132,23 @@ def merge_exposures(images, times, linear: bool = True, saturation: float = 0.98
         raise ValueError(f"the bracket's photos differ in size: {[a.shape for a in images]}")
     scaled = [a / 255.0 if a.dtype == np.uint8 else np.asarray(a, dtype=np.float64) for a in images]
     saturated_all = np.all([_saturated(a, saturation) for a in scaled], axis=0)
-    if linear:
-        num, den = 0.0, 0.0
-        for a, t in zip(scaled, times):
-            w = np.clip(np.minimum(a, saturation - a) / (saturation / 2), 0.0, 1.0)  # hat, 0 at black and clip
-            w = w + 1e-6 * (a < saturation)  # keep the darkest unsaturated value where all weights vanish
-            num, den = num + w * a / t, den + w
-        radiance = np.where(den > 0, num / np.maximum(den, 1e-30), 0.0)
-    else:
+    if np.all(saturated_all):
+        raise ValueError("every pixel is saturated in every photo of the bracket; add shorter exposures")
+    if response == "debevec":
         u8 = [np.round(np.clip(a, 0, 1) * 255).astype(np.uint8) for a in scaled]
         grey = u8[0].ndim == 2
         u8 = [np.repeat(a[..., None], 3, -1) if grey else np.ascontiguousarray(a[..., ::-1]) for a in u8]
         t32 = times.astype(np.float32)
-        response = cv2.createCalibrateDebevec().process(u8, t32)
-        bgr = cv2.createMergeDebevec().process(u8, t32, response)
+        curve = cv2.createCalibrateDebevec().process(u8, t32)
+        bgr = cv2.createMergeDebevec().process(u8, t32, curve)
         radiance = bgr.mean(axis=2) if grey else bgr[..., ::-1]
-    if np.all(saturated_all):
-        raise ValueError("every pixel is saturated in every photo of the bracket; add shorter exposures")
+    else:
+        linear = [srgb_to_linear(a) for a in scaled] if response == "srgb" else scaled
+        top = float(srgb_to_linear(saturation)) if response == "srgb" else saturation
+        num, den = 0.0, 0.0
+        for a, t in zip(linear, times):
+            w = np.clip(np.minimum(a, top - a) / (top / 2), 0.0, 1.0)  # hat: 0 at black and at clipping
+            w = w + 1e-6 * (a < top)  # keep the darkest unsaturated value where all weights vanish
+            num, den = num + w * a / t, den + w
+        radiance = np.where(den > 0, num / np.maximum(den, 1e-30), 0.0)
     return Photo(np.ascontiguousarray(radiance, dtype=np.float32), saturated_all, None)

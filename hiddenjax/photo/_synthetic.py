@@ -1,15 +1,18 @@
-"""Photos of the board rendered by ray casting: test data for calibration and pose, independent of OpenCV's projection.
+"""Rendered captures: test and example data made with the project's renderers, independent of OpenCV's projection.
 
-Each pixel is the box-filtered mean over `samples x samples` stratified rays (docs/conventions.md,
-"Camera"): a ray from the camera's centre meets the table plane y = 0, where the radiance is
-`irradiance * rho / pi` with `rho` the board's printed reflectance (black or white) inside the
-board and `table` outside it.
+`render_board_photo` ray-casts the board alone: each pixel is the box-filtered mean over
+`samples x samples` stratified rays (docs/conventions.md, "Camera") meeting the table plane
+y = 0, where the radiance is `irradiance * rho / pi` with `rho` the board's printed reflectance
+(black or white) inside the board and `table` outside it. `render_capture` renders the board
+printed on a table with an object standing on it under a panorama (`hj.reference_render`, all
+shadows), `distort` applies a lens's distortion to a pinhole photo.
 """
 
 import cv2
 import numpy as np
 
-from ..scene import Camera
+from ..scene import Camera, Scene, Surface, ground_plane
+from ..transport import reference_render
 from ._board import Board
 
 
@@ -65,3 +68,39 @@ def render_board_photo(
         value = np.where(on, rho[i, j], np.where(hit, table, 0.0))
         out[r] = irradiance / np.pi * value.mean(axis=0)
     return out
+
+
+def board_mesh(board: Board, lift: float = 1e-4):
+    """The printed board as a rectangle `lift` metres above y = 0, with UVs for `board.texture()`."""
+    import trimesh
+
+    W, D = board.size
+    vertices = np.array([[-W / 2, lift, -D / 2], [W / 2, lift, -D / 2], [W / 2, lift, D / 2], [-W / 2, lift, D / 2]])
+    mesh = trimesh.Trimesh(vertices, np.array([[0, 2, 1], [0, 3, 2]]), process=False)
+    mesh.visual = trimesh.visual.TextureVisuals(uv=np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]))
+    return mesh
+
+
+def render_capture(board: Board, mesh, camera: Camera, panorama, *, object_albedo: float = 0.08,
+                   table: float = 0.8, black: float = 0.05, white: float = 0.85, table_size: float = 8.0,
+                   samples: int = 64, pixel_samples: int = 4, seed: int = 0) -> np.ndarray:
+    """A photo (linear radiance) of `mesh` (world coordinates, standing on y = 0) on a `table_size`
+    table of albedo `table` with the board (`white`/`black`) lying at its centre, lit by `panorama`
+    (direct light, `hj.reference_render`)."""
+    obj = mesh.copy()
+    obj.apply_translation([0.0, 1e-4 * float(np.ptp(obj.vertices, axis=0).max()), 0.0])
+    albedo = np.where(board.texture(4000.0) > 0.5, white, black)
+    scene = Scene([Surface(ground_plane(table_size), table), Surface(board_mesh(board), albedo),
+                   Surface(obj, object_albedo, observe=False)])
+    return reference_render(scene, camera, panorama, samples=samples, pixel_samples=pixel_samples, seed=seed)
+
+
+def distort(image, K, distortion) -> np.ndarray:
+    """The photo a lens with OpenCV's `distortion` takes of what the pinhole `K` (OpenCV's) sees: each
+    output pixel samples the pinhole photo where its undistorted position falls (bilinear)."""
+    a = np.asarray(image, dtype=np.float32)
+    H, W = a.shape[:2]
+    x, y = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    pts = np.stack([x, y], -1).reshape(-1, 1, 2)
+    und = cv2.undistortPoints(pts, K, np.asarray(distortion, np.float64), P=K).reshape(H, W, 2).astype(np.float32)
+    return cv2.remap(a, und[..., 0], und[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

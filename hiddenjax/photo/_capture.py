@@ -1,0 +1,198 @@
+"""A capture's scene: the object standing on the table at a stated place, refined against its
+silhouette in the photo, and the pixels a solve may use.
+
+Placement. The object's mesh is scaled (`size`: largest extent in metres, or `scale`: mesh units
+to metres), centred on x and z with its lowest point on y = 0, turned by `yaw` degrees about +y
+(counter-clockwise seen from above), then moved to `(x, 0, z)` in the board's world frame. This is
+the order of a scene file's `[surface.transform]` (`size`/`scale`, `rest`, `rotation`,
+`translation`), so the scene file written for a capture reproduces it.
+
+Silhouette refinement. With the object's outline `S(x, z, yaw)` (the pixel coverage of its
+projected triangles) and the object's pixels `O` in the photo (a mask the user gives, or the pixels
+much darker than the table around the stated place), the placement maximizes a smoothed
+intersection over union, `sum(gS gO) / sum(gS + gO - gS gO)` with `g` a Gaussian blur, by
+Nelder-Mead from the stated placement, first with a wide blur, then a narrow one.
+"""
+
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import trimesh
+from scipy.optimize import minimize
+
+from ..scene import FIXTURES, Camera, Scene, Surface, fixture, ground_plane, load_mesh
+from ._board import Board
+from ._synthetic import render_board_photo
+
+
+class Placement(NamedTuple):
+    """Where the object stands: `x`, `z` metres in the board's world frame, `yaw` degrees about +y."""
+
+    x: float
+    z: float
+    yaw: float = 0.0
+
+
+def object_mesh(mesh, size: float | None = None, scale: float | None = None) -> trimesh.Trimesh:
+    """The object at the origin: a fixture name or mesh (path), scaled, resting on y = 0 (module docstring)."""
+    if size is not None and scale is not None:
+        raise ValueError("give the object's size (largest extent, metres) or its scale (mesh units to metres), not both")
+    if isinstance(mesh, str) and mesh in FIXTURES:
+        if size is None and scale is None:
+            raise ValueError(f"the fixture {mesh!r} is unit-sized; give its size in metres (--size)")
+        m = fixture(mesh)
+    else:
+        m = load_mesh(mesh).copy()
+    if size is not None:
+        if not size > 0:
+            raise ValueError(f"size must be positive metres, got {size}")
+        m.apply_scale(size / float(np.ptp(m.vertices, axis=0).max()))
+    elif scale is not None:
+        if not scale > 0:
+            raise ValueError(f"scale must be positive, got {scale}")
+        m.apply_scale(scale)
+    lo, hi = m.bounds
+    m.apply_translation([-(lo[0] + hi[0]) / 2, -lo[1], -(lo[2] + hi[2]) / 2])
+    extent = float(np.ptp(m.vertices, axis=0).max())
+    if not 1e-3 <= extent <= 10:
+        raise ValueError(f"the object is {extent:.3g} m across; give its size in metres (--size) or the "
+                         f"mesh's units (--scale 0.001 for millimetres)")
+    return m
+
+
+def place(base: trimesh.Trimesh, placement: Placement) -> trimesh.Trimesh:
+    """`base` (from `object_mesh`) turned by the yaw and moved to `(x, 0, z)`."""
+    m = base.copy()
+    m.apply_transform(trimesh.transformations.rotation_matrix(np.radians(placement.yaw), [0, 1, 0]))
+    m.apply_translation([placement.x, 0.0, placement.z])
+    return m
+
+
+def capture_scene(base: trimesh.Trimesh, placement: Placement, albedo: float = 1.0,
+                  table_size: float = 4.0) -> Scene:
+    """The table plane (albedo `albedo`, observed) and the object standing on it (not observed)."""
+    lift = 1e-4 * float(np.ptp(base.vertices, axis=0).max())  # no z-fighting with the table
+    obj = place(base, placement)
+    obj.apply_translation([0.0, lift, 0.0])
+    return Scene([Surface(ground_plane(table_size), albedo, observe=True), Surface(obj, 0.5, observe=False)])
+
+
+def silhouette(mesh: trimesh.Trimesh, camera: Camera, supersample: int = 4) -> np.ndarray:
+    """`(H, W)` float in `[0, 1]`: the fraction of each pixel the object's projected triangles cover
+    (filled at `supersample` times the resolution, then box-averaged)."""
+    pix, depth = camera.project(np.asarray(mesh.vertices, dtype=np.float32))
+    pix, depth = np.asarray(pix, dtype=np.float64), np.asarray(depth)
+    if np.any(depth <= 0):
+        raise ValueError("the object is outside the photo (partly behind the camera) at the stated place; "
+                         "check --at (metres from the board centre) and the board's pose")
+    k = int(supersample)
+    xy = np.round((pix[:, ::-1] * k - 0.5) * 16).astype(np.int32)  # OpenCV (x, y) at k x, centres at integers
+    fine = np.zeros((camera.height * k, camera.width * k), np.uint8)
+    faces = np.asarray(mesh.faces)
+    if mesh.is_watertight:  # a closed surface's outline is that of its faces towards the camera
+        centroid = np.asarray(mesh.triangles_center)
+        faces = faces[np.einsum("fk,fk->f", np.asarray(mesh.face_normals), centroid - np.asarray(camera.origin)) < 0]
+    for triangle in xy[faces]:  # one by one: fillPoly would cancel overlapping triangles
+        cv2.fillConvexPoly(fine, triangle, 1, lineType=cv2.LINE_8, shift=4)
+    return fine.reshape(camera.height, k, camera.width, k).mean(axis=(1, 3))
+
+
+def plain_table(board: Board, camera: Camera) -> np.ndarray:
+    """`(H, W)` bool: pixels whose footprint sees white (board paper or table), none of the print.
+
+    There an object's darkness cannot be the board's black squares or markers."""
+    seen = render_board_photo(board, camera, samples=2, irradiance=np.pi, black=0.0, white=1.0, table=1.0)
+    return seen > 0.999
+
+
+def dark_object_mask(radiance, expected: np.ndarray, plain: np.ndarray, ratio: float = 0.2) -> np.ndarray:
+    """The object's pixels near where it is `expected`: darker than `ratio` times the table around it,
+    among the `plain` pixels (`plain_table`).
+
+    The table's level is the median of the plain pixels in a ring around the expected silhouette;
+    only pixels within the dilated expected silhouette can belong to the object. Suits a dark
+    object on a light table; give a mask otherwise.
+    """
+    grey = np.asarray(radiance, dtype=np.float64)
+    grey = grey.mean(axis=-1) if grey.ndim == 3 else grey
+    inside = expected > 0.5
+    if not inside.any():
+        raise ValueError("the object is outside the photo at the stated place; check --at (metres, board frame)")
+    radius = max(3, int(0.25 * np.sqrt(inside.sum())))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    window = cv2.dilate(inside.astype(np.uint8), kernel) > 0
+    ring = (cv2.dilate(window.astype(np.uint8), kernel) > 0) & ~window & plain
+    if ring.sum() < 10:
+        raise ValueError("too little plain table visible around the object; frame the photo with table around it")
+    table = float(np.median(grey[ring]))
+    return (window & plain & (grey < ratio * table)).astype(np.float64)
+
+
+class Refinement(NamedTuple):
+    placement: Placement
+    iou: float  # hard intersection over union of the outline and the object's pixels
+    initial_iou: float
+
+
+def refine_placement(base: trimesh.Trimesh, camera: Camera, placement: Placement, target, care=None,
+                     refine_yaw: bool = True, blurs=(6.0, 2.0)) -> Refinement:
+    """Placement whose outline best overlaps `target` (the object's pixels, `(H, W)`) over the pixels
+    `care` (default all; e.g. `plain_table`, where the object's pixels can be told apart), from
+    `placement`: Nelder-Mead on the smoothed overlap, coarse to fine over the blur widths `blurs` (pixels)."""
+    target = np.asarray(target, dtype=np.float64)
+    care = np.ones(target.shape) if care is None else np.asarray(care, dtype=np.float64)
+    if target.shape != (camera.height, camera.width):
+        raise ValueError(f"object mask is {target.shape[1]}x{target.shape[0]}; the photo is {camera.width}x{camera.height}")
+    if target.sum() < 20:
+        raise ValueError("the object's pixels in the photo: fewer than 20 found; give a mask (--object-mask)")
+    extent = float(np.ptp(base.vertices, axis=0).max())
+
+    def unpack(v):
+        return Placement(float(placement.x + v[0] * extent), float(placement.z + v[1] * extent),
+                         float(placement.yaw + (v[2] * 45.0 if refine_yaw else 0.0)))
+
+    def iou(p):
+        s = (silhouette(place(base, p), camera) > 0.5) & (care > 0.5)
+        t = (target > 0.5) & (care > 0.5)
+        return float((s & t).sum() / max((s | t).sum(), 1))
+
+    n = 3 if refine_yaw else 2
+    v = np.zeros(n)
+    for k, blur in enumerate(blurs):
+        g = lambda a: cv2.GaussianBlur(a, (0, 0), blur) * care
+        gt = g(target * care)
+
+        def loss(v):
+            s = g(silhouette(place(base, unpack(v)), camera))
+            inter = float(np.sum(s * gt))
+            return -inter / max(float(np.sum(s + gt)) - inter, 1e-9)
+
+        step = 0.1 / 3**k
+        simplex = np.vstack([v, v + step * np.eye(n)])
+        v = minimize(loss, v, method="Nelder-Mead",
+                     options=dict(initial_simplex=simplex, xatol=1e-3, fatol=1e-6, maxiter=400)).x
+    best = unpack(v)
+    return Refinement(best, iou(best), iou(placement))
+
+
+def table_mask(board: Board, camera: Camera, margin: float = 0.01, saturated=None) -> np.ndarray:
+    """Pixels whose footprint's four corners all see the table outside the board (plus `margin` metres),
+    less the `saturated` pixels and their neighbours: the rows a solve may use (uniform albedo)."""
+    H, W = camera.height, camera.width
+    r, c = np.meshgrid(np.arange(H + 1, dtype=np.float64), np.arange(W + 1, dtype=np.float64), indexing="ij")
+    d = np.asarray(camera.ray_directions(np.stack([r, c], -1).reshape(-1, 2)), dtype=np.float64)
+    o = np.asarray(camera.origin, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -o[1] / d[:, 1]
+    x, z = o[0] + s * d[:, 0], o[2] + s * d[:, 2]
+    bw, bd = board.size
+    on_table = (s > 0) & ~((np.abs(x) < bw / 2 + margin) & (np.abs(z) < bd / 2 + margin))
+    on_table = on_table.reshape(H + 1, W + 1)
+    mask = on_table[:-1, :-1] & on_table[1:, :-1] & on_table[:-1, 1:] & on_table[1:, 1:]
+    if saturated is not None:
+        sat = np.asarray(saturated, dtype=bool)
+        if sat.shape != (H, W):
+            raise ValueError(f"saturated mask is {sat.shape}, the camera {H}x{W}")
+        mask &= ~(cv2.dilate(sat.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+    return mask

@@ -1,0 +1,164 @@
+"""From one photo of an object beside (or on) the printed board to the environment map.
+
+1. The board's pose in the photo (`board_pose`) gives the camera; the photo is undistorted so that
+   camera is an ideal pinhole.
+2. The object stands at the stated place; its outline is matched to its pixels in the photo
+   (`refine_placement`), at up to `REFINE_WIDTH` pixels across.
+3. The photo is area-averaged down to `width` pixels across (a pixel is the mean radiance over its
+   footprint, so the camera is the same pinhole at that size).
+4. Observed pixels: the table outside the board (uniform albedo), not the object, not saturated.
+5. `A` of the inferred scene (Embree, eq. 5.1-5.2) and the map under the chosen prior.
+
+The map is the light's radiance times the table's albedo divided by `albedo` (default 1: give the
+table's albedo for absolute radiance).
+"""
+
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from ..scene import Camera, EnvGrid, Scene
+from ..solvers import solve_illumination
+from ..transport import TransportMatrix, transport_matrix
+from ._board import Board
+from ._calibration import BoardPose, Intrinsics, board_pose
+from ._capture import (Placement, Refinement, capture_scene, dark_object_mask, object_mesh, place, plain_table,
+                       refine_placement, silhouette, table_mask)
+
+REFINE_WIDTH = 800  # refine the placement on the photo resized to at most this many pixels across
+TABLE_SIZE = 4.0  # metres: the table plane of the inferred scene
+
+
+class Reconstruction(NamedTuple):
+    """Everything a capture's solve inferred and produced."""
+
+    pose: BoardPose  # the board in the (undistorted) full-size photo
+    placement: Placement  # the object's place after refinement (the stated one without)
+    refinement: Refinement | None
+    camera: Camera  # the pinhole at the solve's size
+    photo: np.ndarray  # the undistorted photo at the solve's size
+    mask: np.ndarray  # observed pixels at the solve's size
+    scene: Scene
+    T: TransportMatrix
+    env: np.ndarray
+    solution: object
+    object_mask: np.ndarray  # the object's pixels the refinement matched (refinement size)
+    refine_camera: Camera
+
+
+def undistort_photo(radiance, saturated, intrinsics: Intrinsics):
+    """The photo and its saturated mask as the pinhole with the same `K` sees them."""
+    if not np.any(intrinsics.distortion):
+        return radiance, saturated
+    photo = intrinsics.undistort(radiance)
+    sat = intrinsics.undistort(saturated.astype(np.float32)) > 0
+    return photo, sat
+
+
+def _resize(image, width: int, height: int) -> np.ndarray:
+    return cv2.resize(np.asarray(image, dtype=np.float32), (width, height), interpolation=cv2.INTER_AREA)
+
+
+def _resize_any(mask, width: int, height: int) -> np.ndarray:
+    """A pixel of the small mask is set when any part of its footprint is."""
+    return _resize(mask.astype(np.float32), width, height) > 0
+
+
+def reconstruct(
+    board: Board,
+    radiance,
+    intrinsics: Intrinsics,
+    mesh,
+    placement: Placement,
+    *,
+    size: float | None = None,
+    scale: float | None = None,
+    saturated=None,
+    object_mask=None,
+    refine: bool = True,
+    width: int = 128,
+    grid: EnvGrid = EnvGrid(32, 64),
+    samples: int = 16,
+    pixel_samples: int = 4,
+    prior=None,
+    albedo: float = 1.0,
+    seed: int = 0,
+    progress: bool = False,
+) -> Reconstruction:
+    """Solve one capture for its environment map (module docstring). `radiance` is the linear photo
+    at the calibration's size (`read_photo`, `merge_exposures`), `saturated` its clipped pixels,
+    `object_mask` the object's pixels (default: found as the dark pixels near the stated place)."""
+    radiance = np.asarray(radiance, dtype=np.float32)
+    H0, W0 = radiance.shape[:2]
+    if (W0, H0) != (intrinsics.width, intrinsics.height):
+        raise ValueError(f"the photo is {W0}x{H0}, the camera calibration {intrinsics.width}x{intrinsics.height}; "
+                         f"use photos straight from the calibrated camera")
+    if not 8 <= width <= W0:
+        raise ValueError(f"the solve's width must be between 8 and the photo's {W0} pixels, got {width}")
+    saturated = np.zeros((H0, W0), bool) if saturated is None else np.asarray(saturated, bool)
+    if saturated.mean() > 0.5:
+        raise ValueError(f"{saturated.mean():.0%} of the photo is saturated; take a shorter exposure or a bracket")
+    pose = board_pose(board, radiance, intrinsics)
+    photo, saturated = undistort_photo(radiance, saturated, intrinsics)
+    base = object_mesh(mesh, size=size, scale=scale)
+
+    rw = min(W0, REFINE_WIDTH)
+    rh = int(round(rw * H0 / W0))
+    refine_camera = pose.camera(rw, rh)
+    expected = silhouette(place(base, placement), refine_camera)
+    if object_mask is not None:
+        target = np.asarray(object_mask)
+        target = target.max(axis=-1) if target.ndim == 3 else target
+        if target.shape != (H0, W0):
+            raise ValueError(f"the object mask is {target.shape[1]}x{target.shape[0]}, the photo {W0}x{H0}")
+        target = (_resize(target > 0, rw, rh) > 0.5).astype(np.float64)
+        care = None
+    else:
+        care = plain_table(board, refine_camera)
+        target = dark_object_mask(_resize(photo, rw, rh), expected, care)
+    refinement = None
+    if refine:
+        refinement = refine_placement(base, refine_camera, placement, target, care)
+        placement = refinement.placement
+
+    height = int(round(width * H0 / W0))
+    camera = pose.camera(width, height)
+    small = _resize(photo, width, height)
+    mask = table_mask(board, camera, saturated=_resize_any(saturated, width, height))
+    scene = capture_scene(base, placement, albedo=albedo, table_size=TABLE_SIZE)
+    T = transport_matrix(scene, camera, grid, samples=samples, pixel_samples=pixel_samples, mask=mask, seed=seed,
+                         progress=progress)
+    if T.A.shape[0] < 16:
+        raise ValueError(f"only {T.A.shape[0]} pixels see the plain table; frame more table around the object")
+    solution = solve_illumination(T, small, prior=prior)
+    return Reconstruction(pose, placement, refinement, camera, small, np.asarray(T.mask), scene, T,
+                          np.asarray(solution.env), solution, target, refine_camera)
+
+
+def scene_toml(rec: Reconstruction, mesh_name: str, grid: EnvGrid, samples: int, pixel_samples: int, seed: int,
+               size: float | None, scale: float | None, albedo: float, mask_file: str = "mask.png") -> str:
+    """The scene file of a reconstruction (`hj.load_scene` reads it back to the same scene)."""
+    cam = rec.camera
+    fx, fy, cx, cy = (float(v) for v in np.asarray(cam.intrinsics))
+    K = [[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]]  # the scene file takes OpenCV's K
+    R, t = np.asarray(cam.rotation, np.float64), np.asarray(cam.translation, np.float64)
+    fmt = lambda m: "[" + ", ".join(fmt(v) if np.ndim(v) else repr(float(v)) for v in m) + "]"
+    extent = float(np.ptp(rec.scene[1].mesh.vertices, axis=0).max())
+    p = rec.placement
+    resize = f"size = {size!r}" if size is not None else (f"scale = {scale!r}" if scale is not None else "")
+    return "\n".join([
+        "# The scene `hiddenjax reconstruct` inferred: the camera from the board's pose, the object where its",
+        "# outline matched the photo, the observed pixels in mask.png. `hiddenjax transport` rebuilds A from it.",
+        f"[grid]\nheight = {grid.height}\nwidth = {grid.width}\n",
+        f"[transport]\nsamples = {samples}\npixel_samples = {pixel_samples}\nseed = {seed}\n",
+        f"[camera]\nwidth = {cam.width}\nheight = {cam.height}\nK = {fmt(K)}\nR = {fmt(R)}\nt = {fmt(t)}\n",
+        f'[mask]\nimage = "{mask_file}"\n',
+        f'[[surface]]\nmesh = "plane"\nalbedo = {albedo!r}\n[surface.transform]\nscale = [{TABLE_SIZE}, 1.0, {TABLE_SIZE}]\n',
+        f'[[surface]]\nmesh = "{mesh_name}"\nalbedo = 0.5\nobserve = false\n[surface.transform]',
+        *([resize] if resize else []),
+        "rest = true",
+        f"rotation = [0.0, {float(p.yaw)!r}, 0.0]",
+        f"translation = [{float(p.x)!r}, {1e-4 * extent!r}, {float(p.z)!r}]",
+        "",
+    ])

@@ -1,0 +1,148 @@
+"""A capture's scene: the object's outline against Embree, placement refinement on a photo rendered
+with all its shadows by the reference renderer, the mask, the scene file, and `hiddenjax reconstruct`."""
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import hiddenjax as hj
+from hiddenjax import photo
+from hiddenjax.cli import main
+from hiddenjax.transport._embree import RayCaster
+
+BOARD = photo.Board(squares=(10, 7), square=0.025, marker=0.019)
+WIDTH, HEIGHT, FOV = 480, 360, 60.0
+ORIGIN, TARGET = (0.06, 0.33, 0.22), (0.0, 0.02, -0.08)
+TRUE = photo.Placement(0.0, -0.15, 30.0)
+STATED = photo.Placement(0.008, -0.158, 20.0)  # 11 mm and 10 degrees off
+SIZE = 0.12
+HDRI = Path(__file__).resolve().parents[1] / "data_fixtures" / "hdri"
+
+
+def lens(width=WIDTH, height=HEIGHT):
+    f = width / (2 * np.tan(np.radians(FOV) / 2))
+    return photo.Intrinsics(np.array([[f, 0, width / 2 - 0.5], [0, f, height / 2 - 0.5], [0, 0, 1.0]]), np.zeros(5),
+                            width, height)
+
+
+@pytest.fixture(scope="module")
+def capture():
+    """The teapot behind the board on a white table under a real panorama (reference renderer), 0.5% noise."""
+    panorama = hj.io.read_hdr(HDRI / "immenstadter_horn.hdr")
+    camera = hj.Camera.look_at(ORIGIN, TARGET, (0, 1, 0), fov=FOV, width=WIDTH, height=HEIGHT)
+    base = photo.object_mesh("teapot", size=SIZE)
+    image = photo.render_capture(BOARD, photo.place(base, TRUE), camera, panorama, samples=16, pixel_samples=2)
+    image = image * (1 + np.random.default_rng(0).normal(0, 0.005, image.shape)).astype(np.float32)
+    return camera, base, image, panorama
+
+
+def test_outline_is_the_pixel_coverage_embree_sees(capture):
+    """`silhouette` (filled projected triangles) against the fraction of 64 footprint rays that hit the object."""
+    camera, base, _, _ = capture
+    mesh = photo.place(base, TRUE)
+    origin, directions = camera.primary_rays(64, seed=0)
+    hit = RayCaster(hj.Scene([hj.Surface(mesh)])).first_surface(
+        np.broadcast_to(origin, directions.reshape(-1, 3).shape), directions.reshape(-1, 3))
+    coverage = (hit >= 0).reshape(HEIGHT, WIDTH, 64).mean(axis=-1)
+    outline = photo.silhouette(mesh, camera)
+    assert abs(outline.sum() / coverage.sum() - 1) < 0.01
+    assert np.abs(outline - coverage).sum() < 0.05 * coverage.sum()
+
+
+def test_refinement_moves_the_object_to_its_place(capture):
+    """Target: position within 2 mm and yaw within 1 degree, from 11 mm and 10 degrees off, on the
+    board pose's camera and the object's dark pixels."""
+    camera, base, image, _ = capture
+    pose = photo.board_pose(BOARD, image, lens())
+    cam = pose.camera()
+    plain = photo.plain_table(BOARD, cam)
+    target = photo.dark_object_mask(image, photo.silhouette(photo.place(base, STATED), cam), plain)
+    r = photo.refine_placement(base, cam, STATED, target, plain)
+    assert np.hypot(r.placement.x - TRUE.x, r.placement.z - TRUE.z) < 2e-3
+    assert abs(r.placement.yaw - TRUE.yaw) < 1.0
+    assert r.iou > r.initial_iou + 0.1
+
+
+def test_table_mask_leaves_out_the_board_and_saturated_pixels(capture):
+    camera = capture[0]
+    board_pixels = photo.render_board_photo(BOARD, camera, samples=2, irradiance=np.pi, black=1.0, white=1.0,
+                                            table=0.0) > 0
+    mask = photo.table_mask(BOARD, camera, margin=0.0)
+    assert not np.any(mask & board_pixels) and mask.sum() > 0.3 * mask.size
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    r, c = np.argwhere(inner)[inner.sum() // 2]
+    saturated = np.zeros_like(mask)
+    saturated[r, c] = True
+    masked = photo.table_mask(BOARD, camera, margin=0.0, saturated=saturated)
+    assert not masked[r - 1 : r + 2, c - 1 : c + 2].any() and masked.sum() == mask.sum() - 9
+
+
+def test_scene_file_rebuilds_the_reconstructions_matrix(capture, tmp_path):
+    """What `reconstruct` solved with is what its scene file says: `load_scene` rebuilds the same A."""
+    _, _, image, _ = capture
+    grid = hj.EnvGrid(8, 16)
+    rec = photo.reconstruct(BOARD, image, lens(), "teapot", STATED, size=SIZE, width=48, grid=grid, samples=4,
+                            pixel_samples=1)
+    hj.io.write_png(tmp_path / "mask.png", rec.mask.astype(np.uint8) * 255)
+    (tmp_path / "scene.toml").write_text(photo.scene_toml(rec, "teapot", grid, 4, 1, 0, SIZE, None, 1.0))
+    spec = hj.load_scene(tmp_path / "scene.toml")
+    T = hj.transport_matrix(spec.scene, spec.camera, spec.grid, progress=False, **spec.transport)
+    np.testing.assert_array_equal(np.asarray(T.mask), rec.mask)
+    # The same scene up to the rounding of the object's vertices (the file's transform is applied in one
+    # step): at most a few visibility samples that graze an edge may flip.
+    A, B = np.asarray(T.A), np.asarray(rec.T.A)
+    assert np.mean(~np.isclose(A, B, rtol=1e-5, atol=1e-7)) < 1e-4
+    assert np.linalg.norm(A - B) < 1e-3 * np.linalg.norm(B)
+
+
+def test_reconstruct_command_writes_the_map_and_its_checks(capture, tmp_path, capsys):
+    camera, _, image, _ = capture
+    BOARD.save(tmp_path / "board.toml")
+    hj.io.write_exr(tmp_path / "photo.exr", image)
+    lens().save(tmp_path / "camera.toml")
+    out = tmp_path / "out"
+    argv = ["reconstruct", str(tmp_path / "board.toml"), str(tmp_path / "photo.exr"), "--object", "teapot",
+            "--size", str(SIZE), "--at", str(STATED.x), str(STATED.z), "--yaw", str(STATED.yaw),
+            "--intrinsics", str(tmp_path / "camera.toml"), "--width", "48", "--grid", "8", "16", "--samples", "4",
+            "--pixel-samples", "1", "-q", "-o", str(out)]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "object refined to" in capsys.readouterr().out
+    for name in ("scene.toml", "mask.png", "A.npz", "env.exr", "env.png", "check.png", "results.json",
+                 "leverage.png", "uncertainty.exr"):
+        assert (out / name).stat().st_mode & 0o044 == 0o044, name  # readable by others (umask 022)
+    results = json.loads((out / "results.json").read_text())
+    assert np.linalg.norm(np.asarray(results["pose"]["t"]) - np.asarray(camera.translation)) < 2e-3
+    assert hj.io.read_exr(out / "env.exr").shape == (8, 16, 3)
+
+
+def test_reconstruct_refuses_bad_captures_in_one_line_and_writes_nothing(capture, tmp_path, capsys):
+    _, _, image, _ = capture
+    BOARD.save(tmp_path / "board.toml")
+    photo.Board(squares=(10, 7), square=0.025, marker=0.019, dictionary="5X5_50").save(tmp_path / "other.toml")
+    lens().save(tmp_path / "camera.toml")
+    hj.io.write_exr(tmp_path / "photo.exr", image)
+    hj.io.write_exr(tmp_path / "blank.exr", np.full((HEIGHT, WIDTH), 0.5, np.float32))
+    hj.io.write_exr(tmp_path / "small.exr", image[::2, ::2])
+    cv2.imwrite(str(tmp_path / "white.png"), np.full((HEIGHT, WIDTH), 65535, np.uint16))
+    out = tmp_path / "out"
+    common = ["--object", "teapot", "--size", str(SIZE), "-o", str(out), "-q"]
+    cam = ["--intrinsics", str(tmp_path / "camera.toml")]
+    board, good = str(tmp_path / "board.toml"), str(tmp_path / "photo.exr")
+    cases = [
+        ([board, str(tmp_path / "blank.exr"), "--at", "0", "-0.15", *cam], "blank"),
+        ([str(tmp_path / "other.toml"), good, "--at", "0", "-0.15", *cam], "match the printed board"),
+        ([board, good, "--at", "3", "3", *cam], "object is outside the photo"),
+        ([board, good, "--at", "0", "-0.15"], "give the camera"),
+        ([board, str(tmp_path / "small.exr"), "--at", "0", "-0.15", *cam], "camera calibration"),
+        ([board, str(tmp_path / "white.png"), "--at", "0", "-0.15", *cam], "saturated"),
+        ([board, good, "--at", "0", "-0.15", "--times", "0.1", *cam], "--times is for a bracket"),
+        ([board, good, good, "--at", "0", "-0.15", *cam], "exposure times"),
+    ]
+    for args, words in cases:
+        assert main(["reconstruct", *args, *common]) == 1, words
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and words in err, err
+        assert not out.exists()
