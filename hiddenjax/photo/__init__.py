@@ -36,3 +36,9 @@ from ._reconstruct import scene_toml as scene_toml
 from ._synthetic import board_mesh as board_mesh
 from ._synthetic import distort as distort
 from ._synthetic import render_capture as render_capture
+from ._video import BACKGROUNDS as BACKGROUNDS
+from ._video import Video as Video
+from ._video import background_frame as background_frame
+from ._video import differential_maps as differential_maps
+from ._video import read_video as read_video
+from ._video import write_video as write_video
