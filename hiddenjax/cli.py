@@ -57,6 +57,16 @@ def _output(path, suffixes) -> Path:
     return path
 
 
+def _output_folder(path) -> Path:
+    """Check an output folder before any work: not a file, and its parent exists (it is created last)."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output {out} exists and is not a folder")
+    if not out.parent.is_dir():
+        raise ValueError(f"output folder {out.parent} does not exist; create it first")
+    return out
+
+
 def _load_matrix(path) -> TransportMatrix:
     if not Path(path).is_file():
         raise ValueError(f"transport matrix not found: {path} (build one with `hiddenjax transport SCENE -o {path}`)")
@@ -290,11 +300,7 @@ def _write_detections(path, b, images, names) -> None:
 
 def reconstruct(args) -> dict:
     """`hiddenjax reconstruct`: one capture (a photo or a bracket) to the environment map."""
-    out = Path(args.output)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"output {out} exists and is not a folder")
-    if not out.parent.is_dir():
-        raise ValueError(f"output folder {out.parent} does not exist; create it first")
+    out = _output_folder(args.output)
     b = _photo.Board.load(args.board)
     photo = _read_capture(args.photos, args.times, args.srgb, args.response)
     H0, W0 = photo.radiance.shape[:2]
@@ -351,11 +357,7 @@ def reconstruct(args) -> dict:
 
 def video(args) -> dict:
     """`hiddenjax video`: frames minus a background as signed differential maps (one factorization)."""
-    out = Path(args.output)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"output {out} exists and is not a folder")
-    if not out.parent.is_dir():
-        raise ValueError(f"output folder {out.parent} does not exist; create it first")
+    out = _output_folder(args.output)
     movie = None if args.video is None else _output(args.video, (".mp4", ".avi"))
     T = _load_matrix(args.matrix)
     H, W = np.asarray(T.mask).shape
