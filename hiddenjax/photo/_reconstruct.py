@@ -2,8 +2,8 @@
 
 1. The board's pose in the photo (`board_pose`) gives the camera; the photo is undistorted so that
    camera is an ideal pinhole.
-2. The object stands at the stated place; its outline is matched to its pixels in the photo
-   (`refine_placement`), at up to `REFINE_WIDTH` pixels across.
+2. The object stands at the stated place; its outline is matched to its pixels in the photo, then
+   to the photo's edges (`refine_placement`), at up to `REFINE_WIDTH` pixels across.
 3. The photo is area-averaged down to `width` pixels across (a pixel is the mean radiance over its
    footprint, so the camera is the same pinhole at that size).
 4. Observed pixels: the table outside the board (uniform albedo), not the object, not saturated.
@@ -107,19 +107,18 @@ def reconstruct(
     rh = int(round(rw * H0 / W0))
     refine_camera = pose.camera(rw, rh)
     expected = silhouette(place(base, placement), refine_camera)
+    care = plain_table(board, refine_camera)  # where the object's pixels and edges are not the print's
     if object_mask is not None:
         target = np.asarray(object_mask)
         target = target.max(axis=-1) if target.ndim == 3 else target
         if target.shape != (H0, W0):
             raise ValueError(f"the object mask is {target.shape[1]}x{target.shape[0]}, the photo {W0}x{H0}")
         target = (_resize(target > 0, rw, rh) > 0.5).astype(np.float64)
-        care = None
     else:
-        care = plain_table(board, refine_camera)
         target = dark_object_mask(_resize(photo, rw, rh), expected, care)
     refinement = None
     if refine:
-        refinement = refine_placement(base, refine_camera, placement, target, care)
+        refinement = refine_placement(base, refine_camera, placement, target, care, radiance=_resize(photo, rw, rh))
         placement = refinement.placement
 
     height = int(round(width * H0 / W0))
