@@ -31,7 +31,7 @@ from . import cues as _cues
 from . import io
 from . import metrics
 from . import photo as _photo
-from .scene import FIXTURES, EnvGrid, object_on_plane, procedural_sky
+from .scene import EnvGrid, object_on_plane, procedural_sky
 from .solvers import DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior
 from ._scene_file import load_scene
 from .transport import TransportMatrix, reference_render, render, transport_matrix
@@ -320,17 +320,17 @@ def reconstruct(args) -> dict:
     t0 = time.perf_counter()
     rec = _photo.reconstruct(
         b, photo.radiance, intr, args.object, _photo.Placement(args.at[0], args.at[1], args.yaw),
-        size=args.size, scale=args.scale, saturated=photo.saturated, object_mask=mask, refine=not args.no_refine,
+        size=args.size, scale=args.scale, up=args.up, simplify=args.simplify, saturated=photo.saturated, object_mask=mask, refine=not args.no_refine,
         width=args.width, grid=grid, samples=args.samples, pixel_samples=args.pixel_samples, prior=args.prior,
         albedo=args.albedo, seed=args.seed, progress=not args.quiet,
     )
     seconds = time.perf_counter() - t0
     sheet = _capture_sheet(b, photo.radiance, intr, rec)
-    mesh_name = args.object if args.object in FIXTURES else str(Path(args.object).resolve())
-    toml = _photo.scene_toml(rec, mesh_name, grid, args.samples, args.pixel_samples, args.seed, args.size,
-                             args.scale, args.albedo)
+    toml = _photo.scene_toml(rec, grid, args.samples, args.pixel_samples, args.seed, args.albedo)
     out.mkdir(exist_ok=True)  # every check passed: only now is anything written
     io.write_png(out / "mask.png", rec.mask.astype(np.uint8) * 255)
+    with io.atomic_path(out / "object.ply") as tmp:
+        rec.base.export(tmp)
     io.write_text(out / "scene.toml", toml)
     rec.T.save(out / "A.npz")
     io.write_exr(out / "env.exr", rec.env)
@@ -528,6 +528,9 @@ def _parser() -> argparse.ArgumentParser:
     size = p.add_mutually_exclusive_group()
     size.add_argument("--size", type=float, help="the object's largest extent in metres")
     size.add_argument("--scale", type=float, help="mesh units to metres (default 1: the mesh is in metres)")
+    p.add_argument("--up", choices=_photo.UP_AXES, default="y", help="the mesh's axis that points up (default y)")
+    p.add_argument("--simplify", type=float, metavar="METRES",
+                   help="merge the mesh's vertices within cells of this size (photogrammetry meshes' fine noise)")
     p.add_argument("--intrinsics", help="camera .toml from `hiddenjax calibrate`")
     p.add_argument("--fov", type=float, help="without a calibration: the horizontal field of view in degrees")
     p.add_argument("--times", type=float, nargs="+", help="exposure times (s) of a bracket (default: EXIF)")

@@ -92,7 +92,8 @@ def test_scene_file_rebuilds_the_reconstructions_matrix(capture, tmp_path):
                             pixel_samples=1, object_mask=outline)
     assert np.hypot(rec.placement.x - TRUE.x, rec.placement.z - TRUE.z) < 1e-3
     hj.io.write_png(tmp_path / "mask.png", rec.mask.astype(np.uint8) * 255)
-    (tmp_path / "scene.toml").write_text(photo.scene_toml(rec, "teapot", grid, 4, 1, 0, SIZE, None, 1.0))
+    rec.base.export(tmp_path / "object.ply")
+    (tmp_path / "scene.toml").write_text(photo.scene_toml(rec, grid, 4, 1, 0, 1.0))
     spec = hj.load_scene(tmp_path / "scene.toml")
     T = hj.transport_matrix(spec.scene, spec.camera, spec.grid, progress=False, **spec.transport)
     np.testing.assert_array_equal(np.asarray(T.mask), rec.mask)
@@ -115,12 +116,14 @@ def test_reconstruct_command_writes_the_map_and_its_checks(capture, tmp_path, ca
             "--pixel-samples", "1", "-q", "-o", str(out)]
     assert main(argv) == 0, capsys.readouterr().err
     assert "object refined to" in capsys.readouterr().out
-    for name in ("scene.toml", "mask.png", "A.npz", "env.exr", "env.png", "check.png", "results.json",
+    for name in ("scene.toml", "mask.png", "object.ply", "A.npz", "env.exr", "env.png", "check.png", "results.json",
                  "leverage.png", "uncertainty.exr"):
         assert (out / name).stat().st_mode & 0o044 == 0o044, name  # readable by others (umask 022)
     results = json.loads((out / "results.json").read_text())
     assert np.linalg.norm(np.asarray(results["pose"]["t"]) - np.asarray(camera.translation)) < 2e-3
     assert hj.io.read_exr(out / "env.exr").shape == (8, 16, 3)
+    spec = hj.load_scene(out / "scene.toml")  # self-contained: the mask and the object beside it
+    assert spec.camera.width == 48 and len(spec.scene) == 2 and not spec.scene[1].observe
 
 
 def test_reconstruct_refuses_bad_captures_in_one_line_and_writes_nothing(capture, tmp_path, capsys):
@@ -151,3 +154,25 @@ def test_reconstruct_refuses_bad_captures_in_one_line_and_writes_nothing(capture
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and words in err, err
         assert not out.exists()
+
+
+def test_photogrammetry_meshes_turn_up_scale_and_simplify(tmp_path):
+    """A z-up mesh in millimetres, finely tessellated: `up`, `scale` and `simplify` make it the object."""
+    import trimesh
+
+    fine = trimesh.creation.capsule(height=80.0, radius=20.0, count=[64, 64])  # mm, long axis along z
+    fine.export(tmp_path / "scan.ply")
+    m = photo.object_mesh(tmp_path / "scan.ply", scale=0.001, up="z")
+    np.testing.assert_allclose(np.ptp(m.vertices, axis=0), [0.04, 0.12, 0.04], rtol=1e-3)  # tall along +y
+    assert abs(m.bounds[0, 1]) < 1e-12
+    coarse = photo.object_mesh(tmp_path / "scan.ply", scale=0.001, up="z", simplify=0.005)
+    assert len(coarse.faces) < len(m.faces) / 10
+    camera = hj.Camera.look_at((0.0, 0.2, 0.25), (0, 0.05, 0), (0, 1, 0), fov=40.0, width=160, height=120)
+    a, b = photo.silhouette(m, camera) > 0.5, photo.silhouette(coarse, camera) > 0.5
+    assert (a & b).sum() / (a | b).sum() > 0.95
+    with pytest.raises(ValueError, match="up must be one of"):
+        photo.object_mesh(tmp_path / "scan.ply", scale=0.001, up="w")
+    with pytest.raises(ValueError, match="well below"):
+        photo.object_mesh(tmp_path / "scan.ply", scale=0.001, simplify=0.5)
+    with pytest.raises(ValueError, match="m across"):
+        photo.object_mesh(tmp_path / "scan.ply")  # millimetres taken as metres: 120 m

@@ -20,9 +20,11 @@ from ._radiance import Photo as Photo
 from ._radiance import exposure_time as exposure_time
 from ._radiance import merge_exposures as merge_exposures
 from ._radiance import read_photo as read_photo
+from ._capture import UP_AXES as UP_AXES
 from ._capture import Placement as Placement
 from ._capture import Refinement as Refinement
 from ._capture import capture_scene as capture_scene
+from ._capture import cluster_vertices as cluster_vertices
 from ._capture import dark_object_mask as dark_object_mask
 from ._capture import object_mesh as object_mesh
 from ._capture import place as place

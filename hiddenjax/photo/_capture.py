@@ -36,16 +36,31 @@ class Placement(NamedTuple):
     yaw: float = 0.0
 
 
-def object_mesh(mesh, size: float | None = None, scale: float | None = None) -> trimesh.Trimesh:
-    """The object at the origin: a fixture name or mesh (path), scaled, resting on y = 0 (module docstring)."""
+UP_AXES = {"x": (1, 0, 0), "y": (0, 1, 0), "z": (0, 0, 1), "-x": (-1, 0, 0), "-y": (0, -1, 0), "-z": (0, 0, -1)}
+
+
+def object_mesh(mesh, size: float | None = None, scale: float | None = None, up: str = "y",
+                simplify: float | None = None) -> trimesh.Trimesh:
+    """The object at the origin: a fixture name or a mesh (path; OBJ, PLY, GLB, ... from a
+    photogrammetry tool such as Meshroom or COLMAP), turned so that its axis `up` is +y, scaled,
+    simplified, resting on y = 0 (module docstring).
+
+    `simplify` (metres) merges the vertices within each cell of that size (vertex clustering): a
+    photogrammetry mesh's fine, noisy geometry only adds grazing-angle noise to the shadows and
+    costs build time.
+    """
     if size is not None and scale is not None:
         raise ValueError("give the object's size (largest extent, metres) or its scale (mesh units to metres), not both")
+    if up not in UP_AXES:
+        raise ValueError(f"up must be one of {', '.join(UP_AXES)} (the mesh's axis that points up), got {up!r}")
     if isinstance(mesh, str) and mesh in FIXTURES:
         if size is None and scale is None:
             raise ValueError(f"the fixture {mesh!r} is unit-sized; give its size in metres (--size)")
         m = fixture(mesh)
     else:
         m = load_mesh(mesh).copy()
+    if up != "y":
+        m.apply_transform(trimesh.geometry.align_vectors(UP_AXES[up], (0, 1, 0)))
     if size is not None:
         if not size > 0:
             raise ValueError(f"size must be positive metres, got {size}")
@@ -54,13 +69,34 @@ def object_mesh(mesh, size: float | None = None, scale: float | None = None) -> 
         if not scale > 0:
             raise ValueError(f"scale must be positive, got {scale}")
         m.apply_scale(scale)
-    lo, hi = m.bounds
-    m.apply_translation([-(lo[0] + hi[0]) / 2, -lo[1], -(lo[2] + hi[2]) / 2])
     extent = float(np.ptp(m.vertices, axis=0).max())
     if not 1e-3 <= extent <= 10:
         raise ValueError(f"the object is {extent:.3g} m across; give its size in metres (--size) or the "
                          f"mesh's units (--scale 0.001 for millimetres)")
+    if simplify is not None:
+        if not 0 < simplify < extent / 4:
+            raise ValueError(f"simplify is a cell size in metres, above 0 and well below the object's {extent:.3g} m; "
+                             f"got {simplify}")
+        m = cluster_vertices(m, simplify)
+    lo, hi = m.bounds
+    m.apply_translation([-(lo[0] + hi[0]) / 2, -lo[1], -(lo[2] + hi[2]) / 2])
     return m
+
+
+def cluster_vertices(mesh: trimesh.Trimesh, cell: float) -> trimesh.Trimesh:
+    """The mesh with the vertices of each `cell`-sized cube merged into their mean; faces that
+    collapse are dropped."""
+    key = np.floor(np.asarray(mesh.vertices) / cell).astype(np.int64)
+    _, inverse = np.unique(key, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    counts = np.bincount(inverse)
+    vertices = np.zeros((len(counts), 3))
+    np.add.at(vertices, inverse, np.asarray(mesh.vertices))
+    faces = inverse[np.asarray(mesh.faces)]
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    if not keep.any():
+        raise ValueError(f"simplifying with {cell} m cells leaves no faces; use a smaller cell")
+    return trimesh.Trimesh(vertices / counts[:, None], faces[keep], process=True)
 
 
 def place(base: trimesh.Trimesh, placement: Placement) -> trimesh.Trimesh:

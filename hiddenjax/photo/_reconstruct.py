@@ -34,6 +34,7 @@ class Reconstruction(NamedTuple):
     """Everything a capture's solve inferred and produced."""
 
     pose: BoardPose  # the board in the (undistorted) full-size photo
+    base: object  # the object's mesh as used: metres, resting at the origin (`object_mesh`)
     placement: Placement  # the object's place after refinement (the stated one without)
     refinement: Refinement | None
     camera: Camera  # the pinhole at the solve's size
@@ -74,6 +75,8 @@ def reconstruct(
     *,
     size: float | None = None,
     scale: float | None = None,
+    up: str = "y",
+    simplify: float | None = None,
     saturated=None,
     object_mask=None,
     refine: bool = True,
@@ -101,7 +104,7 @@ def reconstruct(
         raise ValueError(f"{saturated.mean():.0%} of the photo is saturated; take a shorter exposure or a bracket")
     pose = board_pose(board, radiance, intrinsics)
     photo, saturated = undistort_photo(radiance, saturated, intrinsics)
-    base = object_mesh(mesh, size=size, scale=scale)
+    base = object_mesh(mesh, size=size, scale=scale, up=up, simplify=simplify)
 
     rw = min(W0, REFINE_WIDTH)
     rh = int(round(rw * H0 / W0))
@@ -131,21 +134,21 @@ def reconstruct(
     if T.A.shape[0] < 16:
         raise ValueError(f"only {T.A.shape[0]} pixels see the plain table; frame more table around the object")
     solution = solve_illumination(T, small, prior=prior)
-    return Reconstruction(pose, placement, refinement, camera, small, np.asarray(T.mask), scene, T,
+    return Reconstruction(pose, base, placement, refinement, camera, small, np.asarray(T.mask), scene, T,
                           np.asarray(solution.env), solution, target, refine_camera)
 
 
-def scene_toml(rec: Reconstruction, mesh_name: str, grid: EnvGrid, samples: int, pixel_samples: int, seed: int,
-               size: float | None, scale: float | None, albedo: float, mask_file: str = "mask.png") -> str:
-    """The scene file of a reconstruction (`hj.load_scene` reads it back to the same scene)."""
+def scene_toml(rec: Reconstruction, grid: EnvGrid, samples: int, pixel_samples: int, seed: int, albedo: float,
+               mask_file: str = "mask.png", object_file: str = "object.ply") -> str:
+    """The scene file of a reconstruction (`hj.load_scene` reads it back to the same scene), with the
+    object's mesh as used (`rec.base`, metres, resting at the origin) saved as `object_file` beside it."""
     cam = rec.camera
     fx, fy, cx, cy = (float(v) for v in np.asarray(cam.intrinsics))
     K = [[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]]  # the scene file takes OpenCV's K
     R, t = np.asarray(cam.rotation, np.float64), np.asarray(cam.translation, np.float64)
     fmt = lambda m: "[" + ", ".join(fmt(v) if np.ndim(v) else repr(float(v)) for v in m) + "]"
-    extent = float(np.ptp(rec.scene[1].mesh.vertices, axis=0).max())
+    extent = float(np.ptp(rec.base.vertices, axis=0).max())
     p = rec.placement
-    resize = f"size = {size!r}" if size is not None else (f"scale = {scale!r}" if scale is not None else "")
     return "\n".join([
         "# The scene `hiddenjax reconstruct` inferred: the camera from the board's pose, the object where its",
         "# outline matched the photo, the observed pixels in mask.png. `hiddenjax transport` rebuilds A from it.",
@@ -154,9 +157,8 @@ def scene_toml(rec: Reconstruction, mesh_name: str, grid: EnvGrid, samples: int,
         f"[camera]\nwidth = {cam.width}\nheight = {cam.height}\nK = {fmt(K)}\nR = {fmt(R)}\nt = {fmt(t)}\n",
         f'[mask]\nimage = "{mask_file}"\n',
         f'[[surface]]\nmesh = "plane"\nalbedo = {albedo!r}\n[surface.transform]\nscale = [{TABLE_SIZE}, 1.0, {TABLE_SIZE}]\n',
-        f'[[surface]]\nmesh = "{mesh_name}"\nalbedo = 0.5\nobserve = false\n[surface.transform]',
-        *([resize] if resize else []),
-        "rest = true",
+        f'[[surface]]\nmesh = "{object_file}"  # metres, resting at the origin\nalbedo = 0.5\nobserve = false',
+        "[surface.transform]",
         f"rotation = [0.0, {float(p.yaw)!r}, 0.0]",
         f"translation = [{float(p.x)!r}, {1e-4 * extent!r}, {float(p.z)!r}]",
         "",
