@@ -320,7 +320,8 @@ def reconstruct(args) -> dict:
     t0 = time.perf_counter()
     rec = _photo.reconstruct(
         b, photo.radiance, intr, args.object, _photo.Placement(args.at[0], args.at[1], args.yaw),
-        size=args.size, scale=args.scale, up=args.up, simplify=args.simplify, saturated=photo.saturated, object_mask=mask, refine=not args.no_refine,
+        size=args.size, scale=args.scale, up=args.up, simplify=args.simplify, saturated=photo.saturated,
+        object_mask=mask, refine=not args.no_refine,
         width=args.width, grid=grid, samples=args.samples, pixel_samples=args.pixel_samples, prior=args.prior,
         albedo=args.albedo, seed=args.seed, progress=not args.quiet,
     )
@@ -398,9 +399,10 @@ def _read_capture(paths, times, srgb, response):
         times = [_photo.exposure_time(p) for p in paths]
         if any(t is None for t in times):
             raise ValueError("the bracket's exposure times are not in the files' EXIF; give them with --times")
-    images = [io.read_image(p) for p in paths]
+    images, bits = zip(*(io.read_stored(p) for p in paths))
+    images = [a.astype(np.float32) for a in images]  # as io.read_image returns them
     if response is None:
-        eight_bit = [p for p in paths if cv2.imread(str(p), cv2.IMREAD_UNCHANGED).dtype == np.uint8]
+        eight_bit = [p for p, b in zip(paths, bits) if b == 8]
         response = "srgb" if eight_bit else "linear"
         if eight_bit:
             warnings.warn(f"the bracket has 8-bit photos ({Path(eight_bit[0]).name}, ...): merged through the sRGB "

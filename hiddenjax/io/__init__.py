@@ -8,6 +8,7 @@ from ._exr import write_exr as write_exr
 from ._images import colormap as colormap
 from ._images import read_hdr as read_hdr
 from ._images import read_image as read_image
+from ._images import read_stored as read_stored
 from ._images import srgb_to_linear as srgb_to_linear
 from ._images import tonemap as tonemap
 from ._images import write_hdr as write_hdr

@@ -98,6 +98,15 @@ def read_image(path, srgb: bool = False) -> np.ndarray:
     linearized through the sRGB curve (use it for photos saved by ordinary software; raw or
     linear captures need `srgb=False`). Alpha is dropped.
     """
+    a, _ = read_stored(path)
+    if srgb and Path(path).suffix.lower() not in HDR_SUFFIXES:
+        a = srgb_to_linear(a)
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def read_stored(path) -> tuple[np.ndarray, int]:
+    """An image's values as stored, read once: `(array, bits)`, with `bits` 8 or 16 for integer
+    files (float64 scaled to `[0, 1]`, not linearized) and 32 for float data (EXR, HDR, float TIFF)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in HDR_SUFFIXES + LDR_SUFFIXES:
@@ -105,9 +114,9 @@ def read_image(path, srgb: bool = False) -> np.ndarray:
             f"{path}: unknown image type {suffix!r}; use one of {', '.join(HDR_SUFFIXES + LDR_SUFFIXES)}"
         )
     if suffix == ".exr":
-        return read_exr(path)
+        return read_exr(path), 32
     if suffix == ".hdr":
-        return read_hdr(path)
+        return read_hdr(path), 32
     if not path.is_file():
         raise ValueError(f"image file not found: {path}")
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -116,16 +125,12 @@ def read_image(path, srgb: bool = False) -> np.ndarray:
     if raw.ndim == 3:
         raw = raw[..., [2, 1, 0]] if raw.shape[2] >= 3 else raw[..., 0]
     if raw.dtype == np.uint8:
-        a = raw / 255.0
-    elif raw.dtype == np.uint16:
-        a = raw / 65535.0
-    elif raw.dtype.kind == "f":
-        a = raw.astype(np.float64)
-    else:
-        raise ValueError(f"{path}: unsupported pixel type {raw.dtype}; save it as 8/16-bit or float")
-    if srgb:
-        a = srgb_to_linear(a)
-    return np.ascontiguousarray(a, dtype=np.float32)
+        return raw / 255.0, 8
+    if raw.dtype == np.uint16:
+        return raw / 65535.0, 16
+    if raw.dtype.kind == "f":
+        return raw.astype(np.float64), 32
+    raise ValueError(f"{path}: unsupported pixel type {raw.dtype}; save it as 8/16-bit or float")
 
 
 def write_image(path, array) -> None:

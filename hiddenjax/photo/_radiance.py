@@ -19,7 +19,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from ..io import read_image, srgb_to_linear
+from ..io import read_image, read_stored, srgb_to_linear
 
 HDR_SUFFIXES = (".exr", ".hdr")
 EXIF_IFD, EXPOSURE_TIME = 0x8769, 0x829A
@@ -51,13 +51,6 @@ def exposure_time(path) -> float | None:
     return value if np.isfinite(value) and value > 0 else None
 
 
-def _bits(path: Path) -> int:
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise ValueError(f"cannot read {path} as an image")
-    return {np.dtype(np.uint8): 8, np.dtype(np.uint16): 16}.get(raw.dtype, 32)
-
-
 def read_photo(path, exposure: float | None = None, srgb: bool | None = None, saturation: float = 0.98) -> Photo:
     """Read a photo as linear radiance (module docstring).
 
@@ -77,12 +70,11 @@ def read_photo(path, exposure: float | None = None, srgb: bool | None = None, sa
     if path.suffix.lower() in HDR_SUFFIXES:
         image = read_image(path)
         saturated = np.zeros(image.shape[:2], dtype=bool)
-        stored = image
     else:
         if not path.is_file():
             raise ValueError(f"photo not found: {path}")
-        bits = _bits(path)
-        stored = read_image(path)  # scaled to [0, 1] for integer files
+        stored, bits = read_stored(path)  # scaled to [0, 1] for integer files
+        stored = stored.astype(np.float32)
         if bits == 8 and srgb is None:
             warnings.warn(
                 f"{path.name}: an 8-bit photo, linearized through the sRGB curve; a camera's tone curve "

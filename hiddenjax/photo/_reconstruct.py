@@ -109,6 +109,7 @@ def reconstruct(
     rw = min(W0, REFINE_WIDTH)
     rh = int(round(rw * H0 / W0))
     refine_camera = pose.camera(rw, rh)
+    refine_photo = _resize(photo, rw, rh)
     expected = silhouette(place(base, placement), refine_camera)
     care = plain_table(board, refine_camera)  # where the object's pixels and edges are not the print's
     if object_mask is not None:
@@ -118,10 +119,10 @@ def reconstruct(
             raise ValueError(f"the object mask is {target.shape[1]}x{target.shape[0]}, the photo {W0}x{H0}")
         target = (_resize(target > 0, rw, rh) > 0.5).astype(np.float64)
     else:
-        target = dark_object_mask(_resize(photo, rw, rh), expected, care)
+        target = dark_object_mask(refine_photo, expected, care)
     refinement = None
     if refine:
-        refinement = refine_placement(base, refine_camera, placement, target, care, radiance=_resize(photo, rw, rh))
+        refinement = refine_placement(base, refine_camera, placement, target, care, radiance=refine_photo)
         placement = refinement.placement
 
     height = int(round(width * H0 / W0))

@@ -7,12 +7,13 @@ factorization of the normal matrix and are solved as the columns of one problem
 (`IlluminationOperator.solve_many`), in batches of frames.
 """
 
+from pathlib import Path
 from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from ..io import srgb_to_linear
+from ..io import atomic_path, srgb_to_linear
 from ..solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior
 from ..transport import TransportMatrix
 
@@ -98,10 +99,6 @@ def differential_maps(T: TransportMatrix, frames, background="median", smooth: f
 
 def write_video(path, frames_rgb, fps: float) -> None:
     """Write uint8 RGB frames `(F, H, W, 3)` as a video (`.mp4`: mp4v, `.avi`: MJPG), atomically."""
-    from pathlib import Path
-
-    from ..io import atomic_path
-
     codecs = {".mp4": "mp4v", ".avi": "MJPG"}
     suffix = Path(path).suffix.lower()
     if suffix not in codecs:
