@@ -35,5 +35,6 @@ from .transport import reference_render as reference_render
 from .transport import render as render
 from .transport import render_point_lights as render_point_lights
 from .transport import transport_matrix as transport_matrix
+from .transport import transport_operator as transport_operator
 
 __version__ = "0.1.0"

@@ -19,7 +19,9 @@ from ._illumination import gram_matrix as gram_matrix
 from ._illumination import normal_matrix as normal_matrix
 from ._illumination import prior_matrix as prior_matrix
 from ._illumination import regularization_weights as regularization_weights
-from ._illumination import solve_illumination as solve_illumination
+from ._solve import solve_illumination as solve_illumination
+from ._matrix_free import MatrixFree as MatrixFree
+from ._matrix_free import solve_matrix_free as solve_matrix_free
 from ._albedo import AlbedoIlluminationSolution as AlbedoIlluminationSolution
 from ._albedo import solve_albedo_illumination as solve_albedo_illumination
 from ._adam import AdamSolution as AdamSolution

@@ -16,7 +16,8 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._qp import SUCCESS, DampedNewton, ProjectedNewton, _cho_solve, _cholesky, _kkt_residual, _solve
-from ..transport import TransportMatrix
+from ..transport import TransportMatrix, TransportOperator
+from ._sharded import row_mesh_of, sharded_column_energy, sharded_gram, sharded_matvec, sharded_rmatvec
 
 # Tuned on the teapot fixture (64x64 photo from the reference renderer) for tone-mapped SSIM:
 # within 0.03 of the best at both 16x32 and 32x64 grids. The linear metrics, dominated by the
@@ -92,7 +93,7 @@ class L2Prior(Prior):
 
     def normal_matrix(self, Ts, gram):
         ls, lr = regularization_weights(Ts, self.smooth, self.ridge, self.absolute)
-        return gram + prior_matrix(Ts[0].grid, ls, lr, Ts[0].A.dtype), ls, lr
+        return gram + prior_matrix(Ts[0].grid, ls, lr, Ts[0].dtype), ls, lr
 
     def independent_columns(self) -> bool:
         return self.reweight == 0
@@ -119,7 +120,7 @@ class L2Prior(Prior):
         x, grad, steps, result = _solve(B, factor, c, solver, nonneg)
         # |A x - y|^2 + x^T R x from the residual itself: x^T B x - 2 c^T x + |y|^2 would lose the
         # digits that tell two scenes' energies apart to cancellation (posterior weights use them)
-        residual = sum(jnp.sum((jnp.einsum("pn,n...->p...", t.A, x) - y) ** 2, 0) for t, y in zip(op.views, ys))
+        residual = sum(jnp.sum((matvec(t, x) - y) ** 2, 0) for t, y in zip(op.views, ys))
         objective = residual + jnp.einsum("n...,n...->...", x, jnp.einsum("mn,n...->m...", R, x))
         return x, objective, _kkt_residual(grad, c, x, nonneg), steps, result, None
 
@@ -160,11 +161,12 @@ class IlluminationSolution(eqx.Module):
     sources: Any = None
 
 
-def views(T) -> tuple[TransportMatrix, ...]:
-    """One `TransportMatrix` or a sequence of them (several viewpoints of one env grid) as a tuple."""
-    Ts = (T,) if isinstance(T, TransportMatrix) else tuple(T)
-    if not Ts or not all(isinstance(t, TransportMatrix) for t in Ts):
-        raise ValueError("expected a TransportMatrix or a non-empty sequence of them")
+def views(T) -> tuple[TransportMatrix | TransportOperator, ...]:
+    """One transport (`TransportMatrix` or matrix-free `TransportOperator`) or a sequence of them
+    (several viewpoints of one env grid) as a tuple."""
+    Ts = (T,) if isinstance(T, (TransportMatrix, TransportOperator)) else tuple(T)
+    if not Ts or not all(isinstance(t, (TransportMatrix, TransportOperator)) for t in Ts):
+        raise ValueError("expected a TransportMatrix or TransportOperator, or a non-empty sequence of them")
     if any(t.grid != Ts[0].grid for t in Ts):
         raise ValueError(f"all views must share one env grid; got {[t.grid.shape for t in Ts]}")
     return Ts
@@ -176,11 +178,45 @@ def regularization_weights(T, smooth, ridge, absolute: bool = False):
     With several views, `A^T A` is the sum over views.
     """
     Ts = views(T)
-    dtype = Ts[0].A.dtype
+    dtype = Ts[0].dtype
     if absolute:
         return jnp.asarray(smooth, dtype), jnp.asarray(ridge, dtype)
-    scale = jnp.mean(sum(jnp.sum(t.A * t.A, axis=0) for t in Ts))
+    scale = jnp.mean(sum(column_energy(t) for t in Ts))
     return smooth * scale, ridge * scale
+
+
+def _sharded(t) -> bool:
+    """A `TransportMatrix` whose rows are split over several devices (`hj.transport.shard`)? Never under `jit`."""
+    return isinstance(t, TransportMatrix) and not isinstance(t.A, jax.core.Tracer) and row_mesh_of(t.A) is not None
+
+
+def column_energy(t) -> Float[Array, " N"]:
+    """`diag(A^T A)` of a `TransportMatrix` (row-sharded: summed over its mesh) or a `TransportOperator`."""
+    if isinstance(t, TransportOperator):
+        return t.column_energy()
+    return sharded_column_energy(t.A) if _sharded(t) else jnp.sum(t.A * t.A, axis=0)
+
+
+def gram(t) -> Float[Array, "N N"]:
+    """`A^T A` of a `TransportMatrix` (`gram_matrix`; row-sharded: `psum` over its mesh) or a
+    `TransportOperator` (blockwise, eq. 5.13-5.14)."""
+    if isinstance(t, TransportOperator):
+        return t.gram()
+    return sharded_gram(t.A) if _sharded(t) else gram_matrix(t.A)
+
+
+def matvec(t, x):
+    """`A x` (`x (N[, K])`) of a `TransportMatrix` (row-sharded: gathered) or a `TransportOperator`."""
+    if isinstance(t, TransportOperator):
+        return t.matvec(x)
+    return sharded_matvec(t.A, x) if _sharded(t) else jnp.einsum("pn,n...->p...", t.A, x)
+
+
+def rmatvec(t, y):
+    """`A^T y` (`y (P[, K])`) of a `TransportMatrix` (`transpose_times`; row-sharded: `psum`) or a `TransportOperator`."""
+    if isinstance(t, TransportOperator):
+        return t.rmatvec(y)
+    return sharded_rmatvec(t.A, y) if _sharded(t) else transpose_times(t.A, y)
 
 
 @partial(jax.jit, static_argnames=("block", "chunk"))
@@ -230,7 +266,7 @@ def prior_matrix(grid, smooth, ridge, dtype=jnp.float32) -> Float[Array, "N N"]:
 def normal_matrix(T, smooth, ridge) -> Float[Array, "N N"]:
     """`B = sum over views of A^T A + smooth D^T D + ridge I` (eq. 5.13), absolute weights, `(N, N)`."""
     Ts = views(T)
-    return sum(gram_matrix(t.A) for t in Ts) + prior_matrix(Ts[0].grid, smooth, ridge, Ts[0].A.dtype)
+    return sum(gram(t) for t in Ts) + prior_matrix(Ts[0].grid, smooth, ridge, Ts[0].dtype)
 
 
 class IlluminationOperator(eqx.Module):
@@ -246,7 +282,7 @@ class IlluminationOperator(eqx.Module):
     env map explains all of them (`solve` then takes one image per view).
     """
 
-    views: tuple[TransportMatrix, ...]
+    views: tuple[TransportMatrix | TransportOperator, ...]
     B: Float[Array, "N N"]
     factor: Float[Array, "N N"]  # lower Cholesky factor of B
     smooth: Float[Array, ""]  # absolute weights
@@ -261,7 +297,7 @@ class IlluminationOperator(eqx.Module):
         mean the L2 prior with those weights; neither gives `DEFAULT_PRIOR`.
         """
         Ts = views(T)
-        return cls.from_gram(Ts, sum(gram_matrix(t.A) for t in Ts), smooth, ridge, absolute, prior=prior)
+        return cls.from_gram(Ts, sum(gram(t) for t in Ts), smooth, ridge, absolute, prior=prior)
 
     @classmethod
     def from_gram(cls, T, gram, smooth=None, ridge=None, absolute: bool = False, *, prior=None):
@@ -287,7 +323,7 @@ class IlluminationOperator(eqx.Module):
         if not isinstance(self.prior, L2Prior):
             raise ValueError(f"inverse() is the linear estimate of the L2 prior; this operator's prior is "
                              f"{type(self.prior).__name__}: build it with prior='l2'")
-        At = jnp.concatenate([t.A.T for t in self.views], axis=1)
+        At = jnp.concatenate([(t if isinstance(t, TransportMatrix) else t.matrix()).A.T for t in self.views], axis=1)
         return _cho_solve(self.factor, At)
 
     def solve(self, image, nonneg: bool = True, solver=None, throw: bool = True) -> IlluminationSolution:
@@ -296,11 +332,11 @@ class IlluminationOperator(eqx.Module):
         images = (image,) if len(self.views) == 1 else tuple(image)
         if len(images) != len(self.views):
             raise ValueError(f"{len(self.views)} views need {len(self.views)} images, got {len(images)}")
-        ys = [_check_image(t, im).astype(t.A.dtype) for t, im in zip(self.views, images)]
+        ys = [_check_image(t, im).astype(t.dtype) for t, im in zip(self.views, images)]
         _check_signs(ys, nonneg)
         if len({y.shape[1:] for y in ys}) != 1:
             raise ValueError("all views' images must have the same number of channels")
-        c = sum(transpose_times(t.A, y) for t, y in zip(self.views, ys))
+        c = sum(rmatvec(t, y) for t, y in zip(self.views, ys))
         x, objective, kkt, steps, result, sources = self.prior.solve(self, c, ys, nonneg, solver)
         if throw:
             x = eqx.error_if(x, jnp.any(result != SUCCESS), "solve_illumination: the solver ran out of max_steps "
@@ -340,46 +376,6 @@ def _as_columns(stack):
     M, channels = stack.shape[0], stack.shape[3:]
     columns = jnp.moveaxis(stack, 0, -1).reshape(stack.shape[1:3] + (-1,))
     return columns, lambda a, lead: jnp.moveaxis(a.reshape(a.shape[:lead] + channels + (M,)), -1, 0)
-
-
-def solve_illumination(
-    T: TransportMatrix,
-    image,
-    smooth=None,
-    ridge=None,
-    nonneg: bool = True,
-    *,
-    prior=None,
-    solver: ProjectedNewton | DampedNewton | None = None,
-    absolute: bool = False,
-    throw: bool = True,
-) -> IlluminationSolution:
-    """Environment map from one photo (RGB: the channels as columns of one problem).
-
-    **Arguments:**
-    - `T`: the scene's `TransportMatrix`; `image (H, W)` or `(H, W, C)` linear radiance (only the
-      pixels in `T.mask` are used). Several viewpoints: a sequence of matrices on one env grid and
-      a sequence of images, one per view; one env map explains them all.
-    - `prior`: `"hdr"` (eq. 5.3 with a log-domain, HDR-aware smoothness: `hdr_prior()`),
-      `"l2"` (eq. 5.3 as the thesis has it), `"tv"` (total variation on the sphere), `"sunsky"`
-      (compact sources at continuous directions plus a smooth sky, with `sources` in the result),
-      or a prior Module with its weights (`L2Prior(smooth=0.01)`, `TVPrior(weight=...)`,
-      `SunSkyPrior(...)`). Default: `DEFAULT_PRIOR` ("hdr", the best on the development HDRIs;
-      "l2" with `nonneg=False`).
-    - `smooth`, `ridge`: the L2 prior's weights of `||D x||^2` and `||x||^2` (passing either
-      means `prior="l2"`), relative to `mean(diag(A^T A))` unless `absolute=True`
-      (docs/conventions.md, "Regularization weights").
-    - `nonneg`: `x >= 0` (default); `False` gives the signed map for temporally subtracted frames.
-    - `solver`: `ProjectedNewton()` (exact, default) or `DampedNewton()` (thesis eq. 5.7).
-    - `throw`: raise if the solver did not converge; `False` reports it in `result` instead.
-
-    **Returns:** an `IlluminationSolution`. Pure JAX: works under `jax.jit` and `jax.vmap`. For
-    many images with one `T`, build an `IlluminationOperator` once and reuse it.
-    """
-    if prior is None and smooth is None and ridge is None and not absolute and not nonneg:
-        prior = "l2"  # a signed map (subtracted frames) has no compact non-negative sources
-    op = IlluminationOperator.build(T, smooth, ridge, absolute, prior=prior)
-    return op.solve(image, nonneg=nonneg, solver=solver, throw=throw)
 
 
 def as_prior(prior=None, smooth=None, ridge=None, absolute: bool = False) -> Prior:
@@ -439,7 +435,7 @@ def _check_determined(Ts, prior):
     """Refuse an unregularized problem with fewer observed pixels than unknowns (its `B` is singular)."""
     if not isinstance(prior, L2Prior) or any(isinstance(w, jax.core.Tracer) for w in (prior.smooth, prior.ridge)):
         return
-    pixels, unknowns = sum(t.A.shape[0] for t in Ts), Ts[0].A.shape[1]
+    pixels, unknowns = sum(t.shape[0] for t in Ts), Ts[0].shape[1]
     if float(prior.smooth) == 0 and float(prior.ridge) == 0 and pixels < unknowns:
         raise ValueError(f"{pixels} observed pixels for {unknowns} unknowns and no regularization (smooth=0, "
                          f"ridge=0): the map is not determined; give smooth= or ridge= (or the default prior), "

@@ -31,6 +31,7 @@ from ._illumination import (
     DEFAULT_RIDGE,
     L2Prior,
     Prior,
+    matvec,
 )
 
 
@@ -178,7 +179,7 @@ def effective_samples(views, ys, x):
     """
     total = 0.0
     for t, y in zip(views, ys):
-        r = y - jnp.einsum("pn,n...->p...", t.A, x if y.ndim == 2 else x[:, 0])
+        r = y - matvec(t, x if y.ndim == 2 else x[:, 0])
         r = r.mean(axis=1) if r.ndim == 2 else r
         img = t.rows_to_image(r - jnp.mean(r))
         seen = t.rows_to_image(jnp.ones_like(r)) > 0

@@ -13,12 +13,18 @@ from ..scene._sampling import cosine_directions
 from ._direct import DirectLighting
 from ._embree import Hits, primary_hits
 from ._matrix import TransportMatrix
+from ._memory import format_bytes, parse_memory
 
 DEFAULT_SAMPLES = 16
 DEFAULT_PIXEL_SAMPLES = 4
 DEFAULT_MAX_BYTES = 8 << 30
 # Work per chunk in (footprint point x env pixel) pairs: keeps temporaries to tens of MB.
 _CHUNK_PAIRS = 1 << 18
+# Memory estimates of the guard (measured upper bounds, bytes): a primary ray's hit record and
+# its footprint point, an env cell's constants, a (point, env pixel) pair's chunk temporaries.
+_BYTES_PER_RAY = 320
+_BYTES_PER_CELL = 200
+_BYTES_PER_PAIR = 64
 
 
 def transport_matrix(
@@ -34,7 +40,7 @@ def transport_matrix(
     bounce_samples: int = 1,
     keep_occluder: bool = False,
     threads: int | None = None,
-    max_bytes: int = DEFAULT_MAX_BYTES,
+    max_bytes: int | str = DEFAULT_MAX_BYTES,
     progress: bool = True,
 ) -> TransportMatrix:
     """Ray transport matrix `A (P, N)` of a scene seen by a camera, lit by an env grid (eq. 5.1-5.2).
@@ -56,12 +62,52 @@ def transport_matrix(
     - `threads`: chunks in flight at once (default: the number of cores). Numpy releases the GIL,
       so Embree queries of one chunk overlap the arithmetic of another; results do not depend
       on it.
-    - `max_bytes`: fail at once if `A` would need more memory than this.
+    - `max_bytes`: the memory budget (bytes or a string such as `"8GiB"`): a request whose `A`
+      (at most every pixel of the image, or of `mask`) and build temporaries would not fit is
+      refused before anything is allocated, naming the size and the fix.
     - `progress`: show a progress bar of pixels done and rays cast.
 
     **Returns:** a `TransportMatrix` with float32 `A`. Peak memory is about `A` plus a few tens
     of MB of temporaries per thread.
     """
+    budget = parse_memory(max_bytes, "max_bytes")
+    _check_build_args(scene, camera, samples, pixel_samples, bounces, bounce_samples)
+    threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
+    guard(need_dense(camera, grid, pixel_samples, mask, threads), budget, "max_bytes",
+          "use a smaller grid or fewer pixels (mask, a smaller image), or hj.transport_operator (matrix-free)")
+    plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder)
+    P, N, S = plan.P, plan.N, plan.S
+    need = P * N * 4
+    if need > budget:
+        raise ValueError(
+            f"A would need {format_bytes(need)} ({P} pixels x {N} env pixels, float32), over max_bytes="
+            f"{format_bytes(budget)}; use a smaller grid, fewer pixels (mask), hj.transport_operator "
+            "(matrix-free), or raise max_bytes"
+        )
+    A = _aligned_empty((P, N))
+    rays = 0
+
+    def work(i):
+        return _chunk_rows(plan.lighting, plan.chunk_points(i), S, bounces, bounce_samples, (seed, i))
+
+    for i, (rows, n_rays) in plan.map_chunks(work, threads, progress, "transport matrix"):
+        start = plan.starts[i]
+        A[start : start + len(rows)] = rows
+        rays += n_rays
+    return TransportMatrix(
+        A=jax.device_put(A),  # aliases the aligned buffer on CPU: no second copy of A
+        albedo=jnp.asarray(plan.albedo(), dtype=jnp.float32),
+        pixels=jnp.asarray(plan.pixels, dtype=jnp.int32),
+        grid=grid,
+        image_shape=(plan.H, plan.W),
+        samples=int(samples),
+        pixel_samples=int(S),
+        bounces=int(bounces),
+        seed=int(seed),
+    )
+
+
+def _check_build_args(scene, camera, samples, pixel_samples, bounces=0, bounce_samples=1):
     if not isinstance(scene, Scene):
         raise ValueError(f"scene must be a hiddenjax Scene, got {type(scene).__name__}")
     for name, value, low in (("samples", samples, 1), ("pixel_samples", pixel_samples, 1),
@@ -71,57 +117,85 @@ def transport_matrix(
     if not np.all(np.isfinite(np.asarray(camera.rotation))) or not np.all(np.isfinite(np.asarray(camera.intrinsics))):
         raise ValueError("camera parameters contain non-finite values")
 
-    lighting = DirectLighting(scene, grid, samples)
-    H, W, S = camera.height, camera.width, pixel_samples
-    hits, _ = primary_hits(lighting.caster, camera, S, seed)
-    pixels = _observed_pixels(scene, hits, (H, W), S, mask, keep_occluder)
-    P, N = len(pixels), grid.size
-    need = P * N * 4
-    if need > max_bytes:
-        raise ValueError(
-            f"A would need {need / 2**30:.2f} GiB ({P} pixels x {N} env pixels, float32), over max_bytes="
-            f"{max_bytes / 2**30:.2f} GiB; use a smaller grid, fewer pixels (mask), or raise max_bytes"
-        )
 
-    sel = (pixels[:, None] * S + np.arange(S)).reshape(-1)
-    points = _Points(hits, sel, lighting.caster.offset)
-    chunk = max(1, _CHUNK_PAIRS // (S * N))
-    starts = list(range(0, P, chunk))
-    A = _aligned_empty((P, N))
-    rays = 0
+def chunk_pixels(S: int, N: int) -> int:
+    """Pixels per chunk of the build: about `_CHUNK_PAIRS` (footprint point, env pixel) pairs, at least one pixel."""
+    return max(1, _CHUNK_PAIRS // (S * N))
 
-    def work(i):
-        start = starts[i]
-        chunk_points = points.take(slice(start * S, (start + chunk) * S))
-        return _chunk_rows(lighting, chunk_points, S, bounces, bounce_samples, (seed, i))
 
-    threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
-    with ThreadPoolExecutor(threads) as pool, tqdm(
-        total=P, unit="px", desc="transport matrix", disable=not progress, smoothing=0.1
-    ) as bar:
-        # Submit in windows so at most ~2 chunks per thread are in flight (bounded memory).
-        window = 2 * threads
-        pending = {i: pool.submit(work, i) for i in range(min(window, len(starts)))}
-        for i, start in enumerate(starts):
-            rows, n_rays = pending.pop(i).result()
-            if i + window < len(starts):
-                pending[i + window] = pool.submit(work, i + window)
-            A[start : start + len(rows)] = rows
-            rays += n_rays
-            bar.update(len(rows))
-            bar.set_postfix_str(f"{rays / 1e6:.1f} M rays", refresh=False)
-    albedo = points.albedo.reshape(P, S).mean(axis=1)
-    return TransportMatrix(
-        A=jax.device_put(A),  # aliases the aligned buffer on CPU: no second copy of A
-        albedo=jnp.asarray(albedo, dtype=jnp.float32),
-        pixels=jnp.asarray(pixels, dtype=jnp.int32),
-        grid=grid,
-        image_shape=(H, W),
-        samples=int(samples),
-        pixel_samples=int(S),
-        bounces=int(bounces),
-        seed=int(seed),
-    )
+def need_dense(camera, grid, pixel_samples, mask, threads) -> dict:
+    """Bytes a dense build needs at most, by part, before anything is allocated (`guard` checks them)."""
+    need = need_setup(camera, grid, pixel_samples, threads)
+    pixels = camera.height * camera.width if mask is None else int(np.count_nonzero(np.asarray(mask)))
+    need["A (at most every pixel)"] = pixels * grid.size * 4
+    return need
+
+
+def need_setup(camera, grid, pixel_samples, threads) -> dict:
+    """Bytes of a build's setup: primary hits per footprint ray, per-cell constants, chunk temporaries."""
+    S, N = pixel_samples, grid.size
+    return {
+        "primary hits": camera.height * camera.width * S * _BYTES_PER_RAY,
+        "env-grid constants": N * _BYTES_PER_CELL,
+        "chunk temporaries": 2 * threads * S * N * chunk_pixels(S, N) * _BYTES_PER_PAIR,
+    }
+
+
+def guard(need: dict, budget: int, option: str, fix: str) -> None:
+    """Refuse (before allocating) a request whose parts `need` add up to more than `budget` bytes."""
+    total = sum(need.values())
+    if total > budget:
+        parts = ", ".join(f"{k} {format_bytes(v)}" for k, v in need.items())
+        raise ValueError(f"this request needs about {format_bytes(total)} ({parts}), over {option}="
+                         f"{format_bytes(budget)}; {fix}, or raise {option}")
+
+
+class BuildPlan:
+    """What every chunk of a build shares: the lighting constants, the observed pixels and their footprint points.
+
+    Chunk `i` holds pixels `starts[i] : starts[i] + chunk` and draws from the stream `(seed, 1, i)`,
+    so a chunk's rows do not depend on which builder (dense or matrix-free) computes them, nor in
+    which order.
+    """
+
+    def __init__(self, scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder):
+        self.lighting = DirectLighting(scene, grid, samples)
+        self.H, self.W, self.S = camera.height, camera.width, pixel_samples
+        hits, _ = primary_hits(self.lighting.caster, camera, self.S, seed)
+        self.pixels = _observed_pixels(scene, hits, (self.H, self.W), self.S, mask, keep_occluder)
+        self.P, self.N = len(self.pixels), grid.size
+        sel = (self.pixels[:, None] * self.S + np.arange(self.S)).reshape(-1)
+        self.points = _Points(hits, sel, self.lighting.caster.offset)
+        self.chunk = chunk_pixels(self.S, self.N)
+        self.starts = list(range(0, self.P, self.chunk))
+
+    def chunk_points(self, i) -> "_Points":
+        start = self.starts[i]
+        return self.points.take(slice(start * self.S, (start + self.chunk) * self.S))
+
+    def albedo(self) -> np.ndarray:
+        """Mean footprint albedo of each observed pixel, `(P,)`."""
+        return self.points.albedo.reshape(self.P, self.S).mean(axis=1)
+
+    def map_chunks(self, work, threads: int, progress: bool, desc: str, indices=None):
+        """Yield `(i, work(i))` for every chunk (or those in `indices`) in order, `threads` at a time,
+        with a progress bar of pixels.
+
+        Numpy releases the GIL, so Embree queries of one chunk overlap the arithmetic of another.
+        At most two chunks per thread are in flight (bounded memory).
+        """
+        order = list(range(len(self.starts)) if indices is None else indices)
+        with ThreadPoolExecutor(threads) as pool, tqdm(
+            total=self.P if indices is None else None, unit="px", desc=desc, disable=not progress, smoothing=0.1
+        ) as bar:
+            window = 2 * threads
+            pending = {k: pool.submit(work, order[k]) for k in range(min(window, len(order)))}
+            for k, i in enumerate(order):
+                out = pending.pop(k).result()
+                if k + window < len(order):
+                    pending[k + window] = pool.submit(work, order[k + window])
+                bar.update(min(self.chunk, self.P - self.starts[i]))
+                yield i, out
 
 
 def _aligned_empty(shape, align: int = 64) -> np.ndarray:

@@ -12,7 +12,37 @@ from ..io._files import atomic_path
 from ..scene import EnvGrid
 
 
-class TransportMatrix(eqx.Module):
+class PixelRows:
+    """The observed pixels of a transport (`pixels`, `image_shape`): images to rows and back."""
+
+    @property
+    def mask(self) -> np.ndarray:
+        """Boolean `(H, W)` image of the observed pixels (the rows of `A`)."""
+        size = self.image_shape[0] * self.image_shape[1]
+        m = np.zeros(size, dtype=bool)
+        pixels = np.asarray(self.pixels)
+        m[pixels[pixels < size]] = True  # a row-sharded matrix pads with empty rows at pixel H * W
+        return m.reshape(self.image_shape)
+
+    def image_to_rows(self, image):
+        """Observed pixels `(P,)` or `(P, C)` of an image `(H, W)` or `(H, W, C)`."""
+        image = jnp.asarray(image)
+        if image.shape[:2] != self.image_shape:
+            raise ValueError(
+                f"image shape {image.shape} does not match the transport matrix's image {self.image_shape}"
+            )
+        # the empty rows of a row-sharded matrix (pixel H * W, past the image) read 0
+        return jnp.take(image.reshape((-1,) + image.shape[2:]), self.pixels, axis=0, mode="fill", fill_value=0)
+
+    def rows_to_image(self, rows):
+        """Scatter `(P,)` or `(P, C)` values into an `(H, W[, C])` image, zero outside the mask."""
+        rows = jnp.asarray(rows)
+        H, W = self.image_shape
+        out = jnp.zeros((H * W,) + rows.shape[1:], dtype=rows.dtype).at[self.pixels].set(rows, mode="drop")
+        return out.reshape((H, W) + rows.shape[1:])
+
+
+class TransportMatrix(PixelRows, eqx.Module):
     """Direct-lighting ray transport `A (P, N)` of the observed pixels (docs/conventions.md, "Transport matrix").
 
     `A[p, j]` is the radiance of observed pixel `p` when env pixel `j` has unit radiance and all
@@ -35,32 +65,18 @@ class TransportMatrix(eqx.Module):
     seed: int = eqx.field(static=True, default=0)
 
     @property
-    def mask(self) -> np.ndarray:
-        """Boolean `(H, W)` image of the observed pixels (the rows of `A`)."""
-        m = np.zeros(self.image_shape[0] * self.image_shape[1], dtype=bool)
-        m[np.asarray(self.pixels)] = True
-        return m.reshape(self.image_shape)
+    def dtype(self):
+        return self.A.dtype
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """`(P, N)`: observed pixels x env pixels."""
+        return self.A.shape
 
     @property
     def unit_albedo(self) -> Float[Array, "P N"]:
         """`A' = diag(albedo)^-1 A`, the transport of a white (albedo 1) surface (eq. 5.2)."""
         return self.A / self.albedo[:, None]
-
-    def image_to_rows(self, image):
-        """Observed pixels `(P,)` or `(P, C)` of an image `(H, W)` or `(H, W, C)`."""
-        image = jnp.asarray(image)
-        if image.shape[:2] != self.image_shape:
-            raise ValueError(
-                f"image shape {image.shape} does not match the transport matrix's image {self.image_shape}"
-            )
-        return image.reshape((-1,) + image.shape[2:])[self.pixels]
-
-    def rows_to_image(self, rows):
-        """Scatter `(P,)` or `(P, C)` values into an `(H, W[, C])` image, zero outside the mask."""
-        rows = jnp.asarray(rows)
-        H, W = self.image_shape
-        out = jnp.zeros((H * W,) + rows.shape[1:], dtype=rows.dtype).at[self.pixels].set(rows)
-        return out.reshape((H, W) + rows.shape[1:])
 
     def save(self, path) -> None:
         """Write to `.npz` (atomically: temporary file, then rename)."""

@@ -1,0 +1,194 @@
+"""Eq. 5.3 without the normal matrix: accelerated projected gradient on a matrix-free transport.
+
+For grids whose `N x N` normal matrix does not fit (256x512: 131072 unknowns, `B` = 64 GiB) the
+L2 prior's program `min_x ||A x - y||^2 + ls ||W^1/2 D x||^2 + lr ||x||^2, x >= 0` is solved with
+products by `A` and `A^T` only: a projected Newton method whose steps solve the free block
+`B_FF d = -grad_F` by conjugate gradients (Jacobi-preconditioned with
+`diag(B) = diag(A^T A) + ls diag(D^T W D) + lr`), then backtrack along the projected path
+`max(x + a d, 0)` (a Krylov-inside-active-set method, the matrix-free twin of the exact
+`ProjectedNewton`). It starts coarse to fine: the transport aggregated onto a coarse grid
+(`TransportOperator.aggregate`) is solved exactly and its map spread over the fine cells.
+Convergence is the exact solver's KKT residual, `max |min(x, B x - c)| / max |c|`.
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ..scene import EnvGrid
+from ..transport import TransportOperator
+from ._illumination import (IlluminationOperator, IlluminationSolution, L2Prior, _check_image, as_prior,
+                            column_energy, log_domain_weights, matvec, regularization_weights, rmatvec, views)
+from .._qp import MAX_STEPS, SUCCESS
+
+
+class MatrixFree(eqx.Module):
+    """Settings of the matrix-free solve (`solve_matrix_free`).
+
+    **Fields:** `rtol` the KKT residual to reach (relative, as `ProjectedNewton`'s) and `xtol` the
+    largest change of the map in the last step (relative to its maximum); `max_steps`
+    Newton steps per stage (the HDR prior's reweightings are stages too); `cg_steps` and
+    `cg_tol` the conjugate-gradient budget and relative tolerance of each Newton step; `coarse`
+    the largest number of coarse-grid cells solved exactly for the warm start (0: start from zero).
+    """
+
+    rtol: float = 1e-5
+    xtol: float = 1e-4
+    max_steps: int = 50
+    cg_steps: int = 200
+    cg_tol: float = 1e-3
+    coarse: int = 2048
+
+
+def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree | None = None,
+                      throw: bool = True) -> IlluminationSolution:
+    """Solve eq. 5.3 (the `l2` or HDR-aware `hdr` prior) with products by `A` and `A^T` only.
+
+    **Arguments:**
+    - `T`: a `TransportOperator` (or a `TransportMatrix`, or several views of one grid).
+    - `image (H, W[, C])` linear radiance; `prior` an `L2Prior` or `"l2"`/`"hdr"` (default the
+      default prior); `init` an optional starting map on `T`'s grid (else coarse to fine).
+    - `settings`: `MatrixFree(rtol, max_steps, cg_steps, cg_tol, coarse)`.
+
+    **Returns:** an `IlluminationSolution` (`kkt_residual` relative; `result` 1 if `max_steps`
+    ran out before `rtol`, which raises unless `throw=False`).
+    """
+    settings = MatrixFree() if settings is None else settings
+    Ts = views(T)
+    prior = as_prior(prior)
+    if not isinstance(prior, L2Prior):
+        raise ValueError(f"the matrix-free solve takes the L2 priors ('l2', 'hdr'), not {type(prior).__name__}: "
+                         "solve a coarser grid with it, or give the operator memory= for the exact solve")
+    grid = Ts[0].grid
+    images = (image,) if len(Ts) == 1 else tuple(image)
+    if len(images) != len(Ts):
+        raise ValueError(f"{len(Ts)} views need {len(Ts)} images, got {len(images)}")
+    ys = [np.asarray(_check_image(t, im), np.float64) for t, im in zip(Ts, images)]
+    c = sum(np.asarray(rmatvec(t, y), np.float64) for t, y in zip(Ts, ys))
+    ls, lr = (float(v) for v in regularization_weights(Ts, prior.smooth, prior.ridge, prior.absolute))
+    energy = sum(np.asarray(column_energy(t), np.float64) for t in Ts)
+    first, second = grid.difference_pairs()
+
+    def laplacian(x, w):  # D^T diag(w) D x
+        d = w.reshape((-1,) + (1,) * (x.ndim - 1)) * (x[first] - x[second])
+        out = np.zeros_like(x)
+        np.add.at(out, first, d)
+        np.subtract.at(out, second, d)
+        return out
+
+    def hessian(x, w):  # B x = A^T A x + ls D^T W D x + lr x
+        return sum(np.asarray(rmatvec(t, np.asarray(matvec(t, x), np.float64)), np.float64) for t in Ts) + \
+            ls * laplacian(x, w) + lr * x
+
+    x = np.zeros_like(c) if init is None else _as_start(grid, init, c)
+    if init is None and settings.coarse:
+        x = _coarse_start(Ts, ys, prior, settings.coarse, c)
+    w = np.ones(len(first))
+    stages = prior.reweight + 1
+    steps_total, kkt = 0, np.inf
+    for stage in range(stages):
+        if stage:
+            w = np.asarray(log_domain_weights(grid, jnp.asarray(x), prior.floor), np.float64)
+        metric = energy + ls * (np.bincount(first, w, grid.size) + np.bincount(second, w, grid.size)) + lr
+        metric = np.maximum(metric, 1e-30 * metric.max())
+        x, steps, products, kkt = _newton_cg(lambda v: hessian(v, w), c, metric, x, settings)
+        steps_total += steps
+    grad = hessian(x, w) - c
+    kkt = np.max(np.abs(np.minimum(x, grad)), axis=0) / np.maximum(np.max(np.abs(c), axis=0), 1e-30)
+    result = np.where(kkt <= settings.rtol, SUCCESS, MAX_STEPS)
+    residual = sum(np.sum((np.asarray(matvec(t, x), np.float64) - y) ** 2, axis=0) for t, y in zip(Ts, ys))
+    objective = residual + ls * np.sum(x * laplacian(x, w), axis=0) + lr * np.sum(x * x, axis=0)
+    if throw and np.any(result != SUCCESS):
+        raise RuntimeError(f"the matrix-free solve stopped at KKT residual {np.max(kkt):.2e} after {steps_total} "
+                           f"steps, above rtol={settings.rtol}: raise MatrixFree(max_steps=...), or pass throw=False")
+    f32 = lambda a: jnp.asarray(a, jnp.float32)
+    env = f32(x).reshape(grid.shape + x.shape[1:])
+    ones = np.ones(c.shape[1:], np.int32)
+    return IlluminationSolution(env, f32(objective), f32(kkt), jnp.asarray(ones * steps_total),
+                                jnp.asarray(result.astype(np.int32)), f32(ls), f32(lr))
+
+
+def _newton_cg(hessian, c, metric, x, settings: "MatrixFree"):
+    """Projected Newton with conjugate gradients on the free set: `min x^T B x - 2 c^T x`, `x >= 0`.
+
+    Each step takes the free set `{x > 0 or grad < 0}` of every column, solves `B_FF d = -grad_F`
+    by Jacobi-preconditioned CG (`metric` = `diag(B)`, to `cg_tol`), and backtracks along the
+    projected path `max(x + a d, 0)` until the objective falls. Columns are independent problems
+    sharing the products by `B`. Stops when the KKT residual is below `rtol` and the last step
+    moved the map by less than `xtol` of its maximum (an ill-conditioned problem can have a small
+    gradient far from its optimum). Returns `(x, newton steps, products by B, kkt)`.
+    """
+    col = lambda a: a.reshape((-1,) + (1,) * (c.ndim - 1))
+    inv = col(1 / metric)
+    cmax = np.maximum(np.max(np.abs(c), axis=0), 1e-30)
+    objective = lambda x, Bx: np.sum(x * Bx, axis=0) - 2 * np.sum(c * x, axis=0)
+    Bx = hessian(x)
+    products = 1
+    kkt = np.max(np.abs(np.minimum(x, Bx - c)), axis=0) / cmax
+    change = np.full(c.shape[1:], np.inf)
+    for step in range(1, settings.max_steps + 1):
+        if np.all((kkt <= settings.rtol) & (change <= settings.xtol)):
+            return x, step - 1, products, kkt
+        grad = Bx - c
+        free = ((x > 0) | (grad < 0)).astype(x.dtype)
+        # CG on B_FF d = -grad_F (d = 0 off the free set)
+        d = np.zeros_like(x)
+        r = -grad * free
+        z = inv * r
+        p = z.copy()
+        rz = np.sum(r * z, axis=0)
+        r0 = np.sqrt(np.sum(r * r, axis=0))
+        for _ in range(settings.cg_steps):
+            Bp = hessian(p) * free
+            products += 1
+            alpha = rz / np.maximum(np.sum(p * Bp, axis=0), 1e-300)
+            d += alpha * p
+            r -= alpha * Bp
+            if np.all(np.sqrt(np.sum(r * r, axis=0)) <= settings.cg_tol * r0):
+                break
+            z = inv * r
+            rz_new = np.sum(r * z, axis=0)
+            p = z + rz_new / np.maximum(rz, 1e-300) * p
+            rz = rz_new
+        f0, a = objective(x, Bx), np.ones(c.shape[1:])
+        accepted = np.zeros(c.shape[1:], bool)
+        new, Bnew = x.copy(), Bx.copy()
+        for _ in range(30):  # backtracking on the projected path, column by column
+            trial = np.maximum(x + a * d, 0.0)
+            Btrial = hessian(trial)
+            products += 1
+            ok = ~accepted & (objective(trial, Btrial) < f0)
+            new = np.where(ok, trial, new)
+            Bnew = np.where(ok, Btrial, Bnew)
+            accepted |= ok
+            if np.all(accepted):
+                break
+            a = np.where(accepted, a, a / 2)
+        change = np.max(np.abs(new - x), axis=0) / np.maximum(np.max(np.abs(new), axis=0), 1e-300)
+        x, Bx = new, Bnew
+        kkt = np.max(np.abs(np.minimum(x, Bx - c)), axis=0) / cmax
+    return x, settings.max_steps, products, kkt
+
+
+def _coarse_start(Ts, ys, prior, cells, c):
+    """The exact solve on the coarsest aggregated grid with at most `cells` cells, spread over the fine cells."""
+    grid = Ts[0].grid
+    h, w = grid.height, grid.width
+    while h % 2 == 0 and w % 2 == 0 and h * w > cells:
+        h, w = h // 2, w // 2
+    if (h, w) == grid.shape or h * w > cells or not all(isinstance(t, TransportOperator) for t in Ts):
+        return np.zeros_like(c)
+    coarse = EnvGrid(h, w)
+    Tc = [t.aggregate(coarse) for t in Ts]
+    images = [t.rows_to_image(jnp.asarray(y, jnp.float32)) for t, y in zip(Tc, ys)]
+    sol = IlluminationOperator.build(Tc, prior=prior).solve(images[0] if len(Tc) == 1 else images, throw=False)
+    env = np.asarray(sol.env, np.float64)
+    fine = np.repeat(np.repeat(env, grid.height // h, axis=0), grid.width // w, axis=1)
+    return fine.reshape(c.shape)
+
+
+def _as_start(grid, init, c):
+    x = np.asarray(init, np.float64)
+    if x.shape[:2] != grid.shape:
+        raise ValueError(f"init must be a map on the grid {grid.shape}, got shape {x.shape}")
+    return np.broadcast_to(np.maximum(x.reshape((grid.size,) + x.shape[2:]), 0), c.shape).copy()

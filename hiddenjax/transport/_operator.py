@@ -1,0 +1,290 @@
+"""`transport_operator`: the transport matrix without storing it (eq. 5.13-5.14).
+
+A row of `A` (eq. 5.1-5.2) is the mean over the pixel's footprint samples `s` of
+`(albedo_s / pi) E_s`, and `E_s = closed(n_s) + delta_s` (`DirectLighting.split_rows`): the
+unoccluded closed form of the sample's normal plus Monte Carlo terms where a pixel straddles the
+horizon or an occluder may hide it. So
+
+    A = W Q + C
+
+with `Q (K, N)` the closed forms of the `K` distinct normals of the observed surfaces (one for a
+table), `W (P, K)` each pixel's footprint weights `albedo_s / (pi S)` on them, and `C (P, N)` sparse:
+a point on a table sees the object in a small part of the sky. Products with `A` and `A^T`, the
+column energies `diag(A^T A)` and the normal matrix `A^T A` (blockwise, eq. 5.13-5.14) never form
+`A`; its rows come from the same chunks and random streams as `transport_matrix`, so the two
+agree to float round-off.
+"""
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+
+from ..scene import Camera, EnvGrid, Scene
+from ._build import (DEFAULT_PIXEL_SAMPLES, DEFAULT_SAMPLES, BuildPlan, _check_build_args, guard, need_setup)
+from ._matrix import PixelRows, TransportMatrix, check_envmap
+from ._memory import format_bytes, parse_memory
+
+DEFAULT_MEMORY = "4GiB"
+_GROUP_ROWS = 4096  # rows per stored sparse block (chunks are merged up to this)
+_DENSE_BLOCK_BYTES = 64 << 20  # a dense row block of A formed for the gram or the column energies
+
+
+class TransportOperator(PixelRows):
+    """The transport matrix `A (P, N)` of a scene as an operator: `A x`, `A^T y`, `diag(A^T A)`, `A^T A`.
+
+    Built by `transport_operator`. Not a pytree: its products run eagerly (numpy and scipy on the
+    CPU, outside `jit`), and return JAX arrays. `solve_illumination`, the CLI and `render` accept it
+    wherever they accept a `TransportMatrix`.
+
+    **Fields:** `grid`, `image_shape (H, W)`, `pixels (P,)`, `albedo (P,)` as in `TransportMatrix`;
+    `samples`, `pixel_samples`, `seed`; `memory` the budget in bytes; `nbytes` what it holds.
+    """
+
+    def __init__(self, plan: BuildPlan, samples, seed, memory, cache, threads, progress):
+        self.grid: EnvGrid = plan.lighting.grid
+        self.image_shape = (plan.H, plan.W)
+        self.pixels = jnp.asarray(plan.pixels, dtype=jnp.int32)
+        self.albedo = jnp.asarray(plan.albedo(), dtype=jnp.float32)
+        self.samples, self.pixel_samples, self.seed = int(samples), plan.S, int(seed)
+        self.memory, self._threads, self._plan = memory, threads, plan
+        P, N, S = plan.P, plan.N, plan.S
+        normals, which = np.unique(plan.points.normal, axis=0, return_inverse=True)
+        which = which.reshape(-1)
+        # The low-rank closed part pays when few normals share many points (planes); a curved
+        # receiver has a normal per point, and its closed part goes into the sparse rows instead.
+        self._low_rank = 8 * len(normals) <= P and len(normals) * N * 8 <= memory // 16
+        if self._low_rank:
+            weight = plan.points.albedo / (np.pi * S)
+            self._W = sp.csr_matrix((weight, (np.repeat(np.arange(P), S), which)), shape=(P, len(normals)))
+            self._Q = plan.lighting.closed_form(normals)
+        else:
+            self._W, self._Q = sp.csr_matrix((P, 0)), np.zeros((0, N))
+        self._groups: list[_Group] = []
+        self._recompute: list[int] = []  # chunks that did not fit the memory budget
+        self.rays = 0
+        fixed = self._W.data.nbytes * 2 + self._Q.nbytes + plan.points.position.nbytes * 4
+        room = memory - fixed if cache is None else cache
+        pending, rows = [], 0
+
+        def flush():
+            nonlocal pending, rows
+            if pending:
+                self._groups.append(_Group(pending[0][0], sp.vstack([b for _, b in pending], format="csr")))
+            pending, rows = [], 0
+
+        for i, (block, rays) in plan.map_chunks(self._chunk, threads, progress, "transport operator"):
+            self.rays += rays
+            size = block.data.nbytes + block.indices.nbytes + block.indptr.nbytes
+            if 2 * size > room:  # a stored block and its merge copy must fit beside what is held
+                self._recompute.append(i)
+                flush()  # a group holds consecutive chunks
+                continue
+            room -= size
+            pending.append((plan.starts[i], block))
+            rows += block.shape[0]
+            if rows >= _GROUP_ROWS:
+                flush()
+        flush()
+
+    # --- the rows --------------------------------------------------------------------------
+
+    def _chunk(self, i):
+        """Sparse rows `C` of chunk `i` (with the closed part too when it is not low-rank), and its rays."""
+        plan = self._plan
+        pts = plan.chunk_points(i)
+        split = plan.lighting.split_rows(pts.position, pts.normal, pts.surface,
+                                         np.random.default_rng([self.seed, 1, i]))
+        S = plan.S
+        weight = pts.albedo / (np.pi * S)
+        rows, cols, vals = split.m // S, split.j, weight[split.m] * split.delta
+        if not self._low_rank:
+            m, j = np.nonzero(split.closed[split.which])
+            rows = np.concatenate([rows, m // S])
+            cols = np.concatenate([cols, j])
+            vals = np.concatenate([vals, weight[m] * split.closed[split.which][m, j]])
+        n = len(pts.position) // S
+        block = sp.coo_matrix((vals, (rows, cols)), shape=(n, plan.N)).tocsr()  # sums each pixel's samples
+        block.sum_duplicates()
+        return block.astype(np.float32), split.rays
+
+    def _sparse_blocks(self):
+        """`(start, C rows)` of every stored group, then of every chunk recomputed (not stored)."""
+        for g in self._groups:
+            yield g.start, g.rows
+        for i in self._recompute:
+            yield self._plan.starts[i], self._chunk(i)[0]
+
+    def _each_block(self, fn):
+        """`fn(start, C rows)` for every sparse block, `threads` at a time (scipy's products release the GIL)."""
+        with ThreadPoolExecutor(self._threads) as pool:
+            yield from pool.map(lambda g: fn(g.start, g.rows), self._groups)
+        plan = self._plan
+        work = lambda i: fn(plan.starts[i], self._chunk(i)[0])
+        yield from (out for _, out in plan.map_chunks(work, self._threads, False, "", self._recompute))
+
+    def dense_blocks(self, max_bytes: int = _DENSE_BLOCK_BYTES):
+        """`(start, A[start:start + n])` as dense float64 row blocks of at most `max_bytes`."""
+        step = max(1, max_bytes // (8 * self.grid.size))
+        for start, C in self._sparse_blocks():
+            for a in range(0, C.shape[0], step):
+                b = min(a + step, C.shape[0])
+                block = C[a:b].toarray().astype(np.float64)
+                if self._low_rank:
+                    block += self._W[start + a : start + b] @ self._Q
+                yield start + a, block
+
+    # --- products ----------------------------------------------------------------------------
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (len(self.pixels), self.grid.size)
+
+    @property
+    def dtype(self):
+        return jnp.float32
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held: the sparse rows stored, the closed part and the footprint points."""
+        stored = sum(g.rows.data.nbytes + g.rows.indices.nbytes + g.rows.indptr.nbytes for g in self._groups)
+        return stored + self._W.data.nbytes * 2 + self._Q.nbytes + self._plan.points.position.nbytes * 4
+
+    def matvec(self, x):
+        """`A x` for `x (N,)` or `(N, C)`, float32 `(P,)` or `(P, C)`."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape[:1] != (self.grid.size,):
+            raise ValueError(f"x must be (N,) or (N, C) with N = {self.grid.size} env pixels, got {x.shape}")
+        out = self._W @ (self._Q @ x)
+        x32 = x.astype(np.float32)  # the sparse rows are float32: a float64 x would copy them on every product
+        for start, part in self._each_block(lambda start, C: (start, C @ x32)):
+            out[start : start + len(part)] += part
+        return jnp.asarray(out, dtype=jnp.float32)
+
+    def rmatvec(self, y):
+        """`A^T y` for `y (P,)` or `(P, C)`, float32 `(N,)` or `(N, C)`."""
+        y = np.asarray(y, dtype=np.float64)
+        if y.shape[:1] != (len(self.pixels),):
+            raise ValueError(f"y must be (P,) or (P, C) with P = {len(self.pixels)} observed pixels, got {y.shape}")
+        out = self._Q.T @ (self._W.T @ y)
+        y32 = y.astype(np.float32)
+        for part in self._each_block(lambda start, C: C.T @ y32[start : start + C.shape[0]]):
+            out += part
+        return jnp.asarray(out, dtype=jnp.float32)
+
+    def column_energy(self):
+        """`diag(A^T A)`, float32 `(N,)`: each env pixel's total squared response."""
+        out = np.zeros(self.grid.size)
+        for _, block in self.dense_blocks():
+            out += np.einsum("pn,pn->n", block, block)
+        return jnp.asarray(out, dtype=jnp.float32)
+
+    def gram(self):
+        """`A^T A`, float32 `(N, N)`, accumulated over dense row blocks (eq. 5.13-5.14) on the lit columns only.
+
+        Refused, with the size, when `N x N` does not fit the memory budget.
+        """
+        N = self.grid.size
+        guard({"A^T A (N x N float32)": 4 * N * N, "its float64 accumulator": 8 * N * N}, self.memory, "memory",
+              "solve matrix-free (solve_illumination does when A^T A does not fit) or use a coarser grid")
+        lit = np.nonzero(np.asarray(self.column_energy()) > 0)[0]
+        G = np.zeros((len(lit), len(lit)))
+        for _, block in self.dense_blocks():
+            b = block[:, lit]
+            G += b.T @ b
+        out = np.zeros((N, N), np.float32)
+        out[np.ix_(lit, lit)] = G
+        return jnp.asarray(out)
+
+    def matrix(self) -> TransportMatrix:
+        """The dense `TransportMatrix` (refused, with the size, when it does not fit the memory budget)."""
+        P, N = self.shape
+        guard({"A (P x N float32)": 4 * P * N}, self.memory, "memory", "keep the operator (matrix-free)")
+        A = np.zeros((P, N), np.float32)
+        for start, block in self.dense_blocks():
+            A[start : start + len(block)] = block
+        return self._dense(jnp.asarray(A), self.grid, self.samples)
+
+    def aggregate(self, grid: EnvGrid) -> TransportMatrix:
+        """The dense transport of a coarser grid whose cells are unions of this one's: `A P` with `P` summing cells.
+
+        A coarse cell's integral is the sum of its fine cells', so this is the coarse grid's
+        transport matrix (each coarse cell estimated with the fine cells' samples): the start of a
+        coarse-to-fine solve.
+        """
+        fh, fw = self.grid.height // grid.height, self.grid.width // grid.width
+        if fh * grid.height != self.grid.height or fw * grid.width != self.grid.width:
+            raise ValueError(f"the grid {grid.shape} does not divide the operator's grid {self.grid.shape}: "
+                             "its cells must be unions of whole fine cells")
+        P = len(self.pixels)
+        guard({"A of the coarse grid": 4 * P * grid.size}, self.memory, "memory", "aggregate to a coarser grid")
+        i, j = np.divmod(np.arange(self.grid.size), self.grid.width)
+        coarse = (i // fh) * grid.width + j // fw
+        merge = sp.csr_matrix((np.ones(self.grid.size), (np.arange(self.grid.size), coarse)),
+                              shape=(self.grid.size, grid.size))
+        A = np.asarray(self._W @ (merge.T @ self._Q.T).T, dtype=np.float64) if self._low_rank else np.zeros(
+            (P, grid.size))
+        for start, C in self._sparse_blocks():
+            A[start : start + C.shape[0]] += (C @ merge).toarray()
+        return self._dense(jnp.asarray(A, dtype=jnp.float32), grid, self.samples * fh * fw)
+
+    def _dense(self, A, grid, samples) -> TransportMatrix:
+        return TransportMatrix(A=A, albedo=self.albedo, pixels=self.pixels, grid=grid, image_shape=self.image_shape,
+                               samples=samples, pixel_samples=self.pixel_samples, seed=self.seed)
+
+    def render(self, envmap):
+        """The image `A x` of an env map, `(H, W[, C])`, zero outside the mask (as `hj.render`)."""
+        return self.rows_to_image(self.matvec(check_envmap(self.grid, envmap)))
+
+    def __repr__(self):
+        P, N = self.shape
+        return (f"TransportOperator({P} pixels x {N} env pixels, grid {self.grid.shape}, holds "
+                f"{format_bytes(self.nbytes)} of {format_bytes(self.memory)}, {len(self._recompute)} chunks "
+                "recomputed per product)")
+
+
+class _Group(NamedTuple):
+    start: int
+    rows: sp.csr_matrix
+
+
+def transport_operator(
+    scene: Scene,
+    camera: Camera,
+    grid: EnvGrid,
+    samples: int = DEFAULT_SAMPLES,
+    pixel_samples: int = DEFAULT_PIXEL_SAMPLES,
+    mask=None,
+    seed: int = 0,
+    *,
+    memory: int | str = DEFAULT_MEMORY,
+    cache: int | str | None = None,
+    keep_occluder: bool = False,
+    threads: int | None = None,
+    progress: bool = True,
+) -> TransportOperator:
+    """The transport of `transport_matrix(scene, camera, grid, ...)` as a matrix-free operator (eq. 5.13-5.14).
+
+    Holds `A = W Q + C` (module doc): the closed-form part as one row per distinct surface normal
+    and the occlusion and horizon terms as sparse rows, as many as fit in `memory`; rows that do
+    not fit are recomputed (with the same random streams) on every product. With the same
+    `seed`, `samples` and `pixel_samples` its rows equal `transport_matrix`'s to float round-off.
+    Direct light only (`bounces=0`).
+
+    **Arguments:** as `transport_matrix`; `memory` the budget (bytes or `"4GiB"`): a request whose
+    setup does not fit is refused before anything is allocated; `cache` the bytes of sparse rows
+    to hold (default: what the budget leaves), the rest recomputed per product.
+
+    **Returns:** a `TransportOperator`.
+    """
+    budget = parse_memory(memory)
+    _check_build_args(scene, camera, samples, pixel_samples)
+    threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
+    guard(need_setup(camera, grid, pixel_samples, threads), budget, "memory",
+          "use fewer pixels (a smaller image) or fewer pixel_samples, or a coarser grid")
+    plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder)
+    cache = None if cache is None else parse_memory(cache, "cache")
+    return TransportOperator(plan, samples, seed, budget, cache, threads, progress)
