@@ -32,9 +32,11 @@ from . import io
 from . import metrics
 from . import photo as _photo
 from .scene import EnvGrid, object_on_plane, procedural_sky
-from .solvers import DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior
+from .solvers import (DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior,
+                      solve_illumination)
 from ._scene_file import load_scene
-from .transport import TransportMatrix, reference_render, render, transport_matrix
+from .transport import (TransportMatrix, TransportOperator, reference_render, render, transport_matrix,
+                        transport_operator)
 
 PRIORS = ("hdr", "l2", "tv", "sunsky")
 IMAGE_HELP = "EXR or Radiance HDR (linear), or 8/16-bit PNG/TIFF/JPEG (see --srgb)"
@@ -120,7 +122,10 @@ def solve(args) -> dict:
     png = _output(args.png, (".png",)) if args.png else None
     if args.signed and out.suffix.lower() == ".hdr":
         raise ValueError("a signed (--signed) map has negative values; write it as .exr, not .hdr")
-    T = _load_matrix(args.matrix)
+    T = _scene_operator(args) if Path(args.matrix).suffix.lower() == ".toml" else _load_matrix(args.matrix)
+    if not isinstance(T, TransportOperator) and (args.grid or args.memory):
+        raise ValueError("--grid and --memory apply to a scene file (.toml), which is solved through the matrix-free "
+                         f"operator; {args.matrix} is a built matrix")
     image = _load_photo(args.image, T, args.srgb)
     t0 = time.perf_counter()
     if args.prior not in (None, "l2") and (args.smooth is not None or args.ridge is not None or args.absolute):
@@ -132,8 +137,11 @@ def solve(args) -> dict:
                         DEFAULT_RIDGE if args.ridge is None else args.ridge, args.absolute)
     if args.signed and as_prior(prior).name == "sunsky":
         raise ValueError("--prior sunsky solves for light >= 0; use --prior l2 or tv with --signed")
-    operator = IlluminationOperator.build(T, prior=prior)
-    solution = operator.solve(image, nonneg=not args.signed, throw=False)
+    if isinstance(T, TransportOperator):  # exact when A^T A fits its memory, else matrix-free
+        solution = solve_illumination(T, image, prior=prior, nonneg=not args.signed, throw=False)
+    else:
+        solution = IlluminationOperator.build(T, prior=prior).solve(image, nonneg=not args.signed, throw=False)
+    prior_name = type(as_prior(prior)).__name__
     env = np.asarray(solution.env)
     seconds = time.perf_counter() - t0
     kkt = float(np.max(solution.kkt_residual))
@@ -146,9 +154,9 @@ def solve(args) -> dict:
         io.write_png(png, env)
     if kkt > 1e-3:
         print(f"warning: the solve did not reach its optimality conditions (KKT residual {kkt:.2g})", file=sys.stderr)
-    print(f"wrote {out}: {T.grid.height}x{T.grid.width} env map ({type(operator.prior).__name__}), {seconds:.2f} s, "
+    print(f"wrote {out}: {T.grid.height}x{T.grid.width} env map ({prior_name}), {seconds:.2f} s, "
           f"KKT residual {kkt:.1e}")
-    summary = dict(seconds=seconds, kkt_residual=kkt, prior=type(operator.prior).__name__)
+    summary = dict(seconds=seconds, kkt_residual=kkt, prior=prior_name)
     if solution.sources is not None:
         src = solution.sources
         active = np.asarray(src.active)
@@ -160,6 +168,29 @@ def solve(args) -> dict:
         summary["sources"] = [dict(theta_deg=float(a[0]), phi_deg=float(a[1]), angle_std_deg=float(s),
                                    power=np.atleast_1d(p).tolist()) for a, p, s in zip(degrees, power, std)]
     return summary
+
+
+def _scene_operator(args) -> TransportOperator:
+    """The matrix-free transport of a scene file (`hiddenjax solve SCENE.toml ...`), on `--grid` if given."""
+    spec = load_scene(args.matrix)
+    options = dict(spec.transport)
+    if options.pop("bounces", 0):
+        raise ValueError("the scene file asks for bounces; the matrix-free operator is direct light only: build the "
+                         "matrix with `hiddenjax transport` and solve that")
+    grid = _parse_grid(args.grid) if args.grid else spec.grid
+    t0 = time.perf_counter()
+    op = transport_operator(spec.scene, spec.camera, grid, memory=args.memory or "8GiB", progress=not args.quiet,
+                            **options)
+    print(f"built {op} in {time.perf_counter() - t0:.1f} s")
+    return op
+
+
+def _parse_grid(text: str) -> EnvGrid:
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+        return EnvGrid(height, width)
+    except (ValueError, TypeError):
+        raise ValueError(f"--grid must be HEIGHTxWIDTH with width = 2 x height, e.g. 128x256; got {text!r}") from None
 
 
 def render_image(args) -> dict:
@@ -450,9 +481,13 @@ def _parser() -> argparse.ArgumentParser:
                        description="Recover the environment map x >= 0 (or signed, --signed) from one photo under a "
                                    "prior: l2 is min ||Ax-y||^2 + smooth ||Dx||^2 + ridge ||x||^2 (eq. 5.3, weights "
                                    "relative to mean diag A^T A); tv and sunsky are described in the docs.")
-    p.add_argument("matrix", help="transport matrix .npz (hiddenjax transport)")
+    p.add_argument("matrix", help="transport matrix .npz (hiddenjax transport), or a scene file .toml: solved through "
+                                  "the matrix-free operator (any grid; exact while A^T A fits --memory)")
     p.add_argument("image", help="the photo: " + IMAGE_HELP)
     p.add_argument("-o", "--output", required=True, help="output env map, .exr or .hdr")
+    p.add_argument("--grid", help="with a scene file: the env grid HEIGHTxWIDTH (default the scene file's), e.g. 128x256")
+    p.add_argument("--memory", help="with a scene file: the memory budget of the operator and the solve (default 8GiB)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--png", help="also write a tone-mapped PNG of the map")
     p.add_argument("--prior", choices=PRIORS, default=None,
                    help=f"hdr (eq. 5.3 with a log-domain smoothness), l2 (eq. 5.3), tv (total variation on the "

@@ -3,7 +3,9 @@
     python data_fixtures/hdri/make_hdri.py /path/to/hdri/folder
 
 Each copy is the solid-angle area average of the original (`EnvGrid(128, 256).downsample`), so
-every direction keeps its power; a small sun stays one bright pixel of 1.4 degrees.
+every direction keeps its power; a small sun stays one bright pixel of 1.4 degrees. One sky with a
+small sun, immenstadter_horn, is also kept at 512x256 (`immenstadter_horn_512.hdr`), the truth of
+the scale benchmark's finest grid.
 """
 
 import sys
@@ -22,6 +24,8 @@ def main(source: str):
         pano = hj.io.read_hdr(Path(source) / f"{name}_1k.hdr")
         hj.io.write_hdr(HERE / f"{name}.hdr", grid.downsample(pano))
         print(name, pano.shape, "->", grid.shape)
+    pano = hj.io.read_hdr(Path(source) / "immenstadter_horn_1k.hdr")
+    hj.io.write_hdr(HERE / "immenstadter_horn_512.hdr", hj.EnvGrid(256, 512).downsample(pano))
 
 
 if __name__ == "__main__":

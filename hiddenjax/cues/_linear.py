@@ -22,7 +22,7 @@ from jaxtyping import Array, Float
 
 from ..solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, gram_matrix, prior_matrix, regularization_weights
 from ..solvers._illumination import _check_image, _check_weights, fold_rows, transpose_times
-from ..transport import TransportMatrix
+from ..transport import TransportMatrix, TransportOperator
 
 _CHUNK = 2048  # pixels per block of `A L^-T`: 2048 x N floats (16 MiB at N = 2048)
 _QR_CHUNK = 8192  # rows per QR update; smaller saves memory, costs time (the stacked R is refactored)
@@ -62,8 +62,10 @@ class LinearCues(eqx.Module):
         (`R <- qr([R; A_k])`): about as fast, 10x less accurate in float32 (teapot: 6e-6), and a few
         `(qr_chunk + N) x N` blocks beside `A`.
         """
+        if isinstance(T, TransportOperator):
+            T = T.matrix()  # the cues need A's rows and B^-1: refused, with the size, beyond its memory budget
         if not isinstance(T, TransportMatrix):
-            raise ValueError(f"cues analyse one TransportMatrix, got {type(T).__name__}; "
+            raise ValueError(f"cues analyse one TransportMatrix or TransportOperator, got {type(T).__name__}; "
                              "for several views, analyse each view's matrix")
         if method not in ("qr", "cholesky"):
             raise ValueError(f"method must be 'qr' or 'cholesky', got {method!r}")
