@@ -142,24 +142,11 @@ def main(argv=None):
     lum = truth_fine.mean(axis=-1) * finest.solid_angles()
     sun = finest.directions()[np.unravel_index(np.argmax(lum), lum.shape)]
 
-    runs = []
-    plan = [(g, False) for g in grids] + [(g, True) for g in grids[:2]]
-    for (h, w), dense in plan:
-        command = [sys.executable, __file__, "--out", str(args.out), "--one", f"{h}x{w}", "--memory", args.memory]
-        done = subprocess.run(command + (["--dense"] if dense else []), capture_output=True, text=True)
-        if done.returncode:
-            print(f"{h}x{w}{' dense' if dense else ''} failed:\n{done.stderr[-2000:]}", flush=True)
-            runs.append(dict(grid=[h, w], dense=dense, failed=done.stderr.strip().splitlines()[-1]))
-            continue
-        run = json.loads(done.stdout.strip().splitlines()[-1])
-        env = np.load(args.out / f"env_{h}x{w}{'_dense' if dense else ''}.npy")
-        run |= score(env, truth_fine, sun)
-        runs.append(run)
-        print(f"{h}x{w} {'dense' if dense else 'operator':8s} build {run['build_seconds']:7.1f} s  solve "
-              f"{run['solve_seconds']:7.1f} s ({'exact' if run['exact_solve'] else 'matrix-free'}, KKT "
-              f"{run['kkt_residual']:.1e})  held {run['held_gib']:.2f} GiB  peak {run['peak_gib']:.2f} GiB  "
-              f"tone-mapped SSIM {run['ssim_tm']:.3f}  SSIM {run['ssim']:.3f}  relRMSE {run['relrmse']:.3f}  "
-              f"sun {run['sun_error_deg']:.2f} deg, power x{run['sun_power_ratio']:.2f}", flush=True)
+    results = dict(photo=[size, size], memory=args.memory)
+
+    def save(**parts):  # after every run, so a long study keeps what it measured
+        results.update(parts)
+        (args.out / "results.json").write_text(json.dumps(results, indent=2))
 
     layouts = []
     extra = ["--quick"] if args.quick else []
@@ -176,13 +163,31 @@ def main(argv=None):
         print(f"{layout['layout']:14s} build {layout['build_seconds']:6.1f} s  solve {layout['solve_seconds']:6.1f} s"
               f"  x{layout['seconds_vs_1_device']:.2f} of 1 device  map vs 1 device {layout['relative_difference']:.1e}",
               flush=True)
+    save(layouts=layouts)
 
-    _picture(args.out, runs, truth_fine, hj)
-    (args.out / "results.json").write_text(json.dumps(dict(photo=[size, size], memory=args.memory, runs=runs,
-                                                           layouts=layouts), indent=2))
+    runs = []
+    plan = [(g, dense) for k, g in enumerate(grids) for dense in ((False, True) if k < 2 else (False,))]
+    for (h, w), dense in plan:
+        command = [sys.executable, __file__, "--out", str(args.out), "--one", f"{h}x{w}", "--memory", args.memory]
+        done = subprocess.run(command + (["--dense"] if dense else []), capture_output=True, text=True)
+        if done.returncode:
+            print(f"{h}x{w}{' dense' if dense else ''} failed:\n{done.stderr[-2000:]}", flush=True)
+            runs.append(dict(grid=[h, w], dense=dense, failed=done.stderr.strip().splitlines()[-1]))
+            continue
+        run = json.loads(done.stdout.strip().splitlines()[-1])
+        env = np.load(args.out / f"env_{h}x{w}{'_dense' if dense else ''}.npy")
+        run |= score(env, truth_fine, sun)
+        runs.append(run)
+        print(f"{h}x{w} {'dense' if dense else 'operator':8s} build {run['build_seconds']:7.1f} s  solve "
+              f"{run['solve_seconds']:7.1f} s ({'exact' if run['exact_solve'] else 'matrix-free'}, KKT "
+              f"{run['kkt_residual']:.1e})  held {run['held_gib']:.2f} GiB  peak {run['peak_gib']:.2f} GiB  "
+              f"tone-mapped SSIM {run['ssim_tm']:.3f}  SSIM {run['ssim']:.3f}  relRMSE {run['relrmse']:.3f}  "
+              f"sun {run['sun_error_deg']:.2f} deg, power x{run['sun_power_ratio']:.2f}", flush=True)
+        save(runs=runs)
+        _picture(args.out, runs, truth_fine)
 
 
-def _picture(out, runs, truth_fine, hj):
+def _picture(out, runs, truth_fine):
     import matplotlib
 
     matplotlib.use("Agg")

@@ -8,6 +8,7 @@ import pytest
 import trimesh
 
 import hiddenjax as hj
+from conftest import relrmse
 
 GRID = hj.EnvGrid(16, 32)
 
@@ -99,11 +100,23 @@ def test_operator_solves_like_the_matrix(teapot, photo, prior):
     objective_rtol = 1e-4 if prior == "l2" else 1e-3
     assert close(via_operator.env, exact.env, 1e-2)
     assert close(via_operator.objective, exact.objective, objective_rtol)
-    matrix_free = hj.solvers.solve_matrix_free(op, photo, prior=prior)
+    # from zero, with the exact solve's reweightings, to a tight tolerance: the same program
+    tight = hj.solvers.MatrixFree(rtol=1e-5, xtol=1e-4, cg_steps=200, cg_tol=1e-3, coarse=0)
+    matrix_free = hj.solvers.solve_matrix_free(op, photo, prior=prior, settings=tight)
     assert np.all(np.asarray(matrix_free.kkt_residual) <= 1e-5)
     assert close(matrix_free.env, exact.env, 1e-2)
     # the same program: the matrix-free optimum is no worse than the exact one (float32 there)
     assert np.all(np.asarray(matrix_free.objective) <= np.asarray(exact.objective) * (1 + objective_rtol))
+
+
+def test_coarse_to_fine_start_converges(teapot, photo):
+    """The default matrix-free solve starts from the exact solve of the transport aggregated onto an 8x16
+    grid (its HDR weights too) and meets its KKT tolerance; the map stays close to the exact solve's."""
+    T, op = teapot
+    sol = hj.solvers.solve_matrix_free(op, photo)
+    assert np.all(np.asarray(sol.kkt_residual) <= hj.solvers.MatrixFree().rtol)
+    exact = np.asarray(hj.solve_illumination(T, photo).env)
+    assert relrmse(sol.env, exact) < 0.1
 
 
 def test_solve_goes_matrix_free_when_the_normal_matrix_does_not_fit(small_setup):
@@ -116,7 +129,7 @@ def test_solve_goes_matrix_free_when_the_normal_matrix_does_not_fit(small_setup)
     with pytest.raises(ValueError, match="A\\^T A"):
         op.gram()
     sol = hj.solve_illumination(op, photo, prior="l2")
-    assert sol.env.shape == grid.shape and float(sol.kkt_residual) <= 1e-5
+    assert sol.env.shape == grid.shape and float(sol.kkt_residual) <= hj.solvers.MatrixFree().rtol
     # the sun's cell is the brightest
     assert np.unravel_index(np.argmax(np.asarray(sol.env)), grid.shape) == (5, 10)
     with pytest.raises(ValueError, match="L2 priors"):

@@ -14,9 +14,10 @@ Convergence is the exact solver's KKT residual, `max |min(x, B x - c)| / max |c|
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 
 from ..scene import EnvGrid
-from ..transport import TransportOperator
+from ..transport import TransportMatrix, TransportOperator
 from ._illumination import (IlluminationOperator, IlluminationSolution, L2Prior, _check_image, as_prior,
                             column_energy, log_domain_weights, matvec, regularization_weights, rmatvec, views)
 from .._qp import MAX_STEPS, SUCCESS
@@ -28,15 +29,16 @@ class MatrixFree(eqx.Module):
     **Fields:** `rtol` the KKT residual to reach (relative, as `ProjectedNewton`'s) and `xtol` the
     largest change of the map in the last step (relative to its maximum); `max_steps`
     Newton steps per stage (the HDR prior's reweightings are stages too); `cg_steps` and
-    `cg_tol` the conjugate-gradient budget and relative tolerance of each Newton step; `coarse`
+    `cg_tol` the conjugate-gradient budget and the tightest relative tolerance of a Newton step
+    (each step solves to `sqrt(kkt)` clipped to `[cg_tol, 0.1]`: loosely far from the optimum); `coarse`
     the largest number of coarse-grid cells solved exactly for the warm start (0: start from zero).
     """
 
-    rtol: float = 1e-5
-    xtol: float = 1e-4
+    rtol: float = 1e-4
+    xtol: float = 1e-3
     max_steps: int = 50
-    cg_steps: int = 200
-    cg_tol: float = 1e-3
+    cg_steps: int = 50
+    cg_tol: float = 1e-2
     coarse: int = 2048
 
 
@@ -68,30 +70,36 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
     ls, lr = (float(v) for v in regularization_weights(Ts, prior.smooth, prior.ridge, prior.absolute))
     energy = sum(np.asarray(column_energy(t), np.float64) for t in Ts)
     first, second = grid.difference_pairs()
+    D = grid.difference_matrix()  # sparse (2H-1)W x N
 
     def laplacian(x, w):  # D^T diag(w) D x
-        d = w.reshape((-1,) + (1,) * (x.ndim - 1)) * (x[first] - x[second])
-        out = np.zeros_like(x)
-        np.add.at(out, first, d)
-        np.subtract.at(out, second, d)
-        return out
+        return D.T @ (w.reshape((-1,) + (1,) * (x.ndim - 1)) * (D @ x))
 
     def hessian(x, w):  # B x = A^T A x + ls D^T W D x + lr x
         return sum(np.asarray(rmatvec(t, np.asarray(matvec(t, x), np.float64)), np.float64) for t in Ts) + \
             ls * laplacian(x, w) + lr * x
 
-    x = np.zeros_like(c) if init is None else _as_start(grid, init, c)
-    if init is None and settings.coarse:
-        x = _coarse_start(Ts, ys, prior, settings.coarse, c)
+    coarse_grid = _coarse_grid(grid, settings.coarse)
+    coarse = None if coarse_grid is None else _Coarse(Ts, coarse_grid, ls, lr)
+    if init is not None:
+        x = _as_start(grid, init, c)
+    elif coarse is not None:
+        x = coarse.start(ys, prior, c)
+    else:
+        x = np.zeros_like(c)
+    # From a coarse start the prior's reweightings are done on the coarse grid: the fine grid
+    # takes its weights from that map and reweights once more from its own.
+    started = init is not None or coarse is not None
+    stages = (min(prior.reweight, 1) if started else prior.reweight) + 1
     w = np.ones(len(first))
-    stages = prior.reweight + 1
     steps_total, kkt = 0, np.inf
     for stage in range(stages):
-        if stage:
+        if prior.reweight and (stage or started):
             w = np.asarray(log_domain_weights(grid, jnp.asarray(x), prior.floor), np.float64)
         metric = energy + ls * (np.bincount(first, w, grid.size) + np.bincount(second, w, grid.size)) + lr
         metric = np.maximum(metric, 1e-30 * metric.max())
-        x, steps, products, kkt = _newton_cg(lambda v: hessian(v, w), c, metric, x, settings)
+        precondition = _jacobi(metric, c.ndim) if coarse is None else coarse.preconditioner(w, metric, c.ndim)
+        x, steps, products, kkt = _newton_cg(lambda v: hessian(v, w), c, precondition, x, settings)
         steps_total += steps
     grad = hessian(x, w) - c
     kkt = np.max(np.abs(np.minimum(x, grad)), axis=0) / np.maximum(np.max(np.abs(c), axis=0), 1e-30)
@@ -108,18 +116,16 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
                                 jnp.asarray(result.astype(np.int32)), f32(ls), f32(lr))
 
 
-def _newton_cg(hessian, c, metric, x, settings: "MatrixFree"):
+def _newton_cg(hessian, c, precondition, x, settings: "MatrixFree"):
     """Projected Newton with conjugate gradients on the free set: `min x^T B x - 2 c^T x`, `x >= 0`.
 
     Each step takes the free set `{x > 0 or grad < 0}` of every column, solves `B_FF d = -grad_F`
-    by Jacobi-preconditioned CG (`metric` = `diag(B)`, to `cg_tol`), and backtracks along the
+    by preconditioned CG (`precondition(r, free)`, to `cg_tol`), and backtracks along the
     projected path `max(x + a d, 0)` until the objective falls. Columns are independent problems
     sharing the products by `B`. Stops when the KKT residual is below `rtol` and the last step
     moved the map by less than `xtol` of its maximum (an ill-conditioned problem can have a small
     gradient far from its optimum). Returns `(x, newton steps, products by B, kkt)`.
     """
-    col = lambda a: a.reshape((-1,) + (1,) * (c.ndim - 1))
-    inv = col(1 / metric)
     cmax = np.maximum(np.max(np.abs(c), axis=0), 1e-30)
     objective = lambda x, Bx: np.sum(x * Bx, axis=0) - 2 * np.sum(c * x, axis=0)
     Bx = hessian(x)
@@ -134,19 +140,21 @@ def _newton_cg(hessian, c, metric, x, settings: "MatrixFree"):
         # CG on B_FF d = -grad_F (d = 0 off the free set)
         d = np.zeros_like(x)
         r = -grad * free
-        z = inv * r
+        z = precondition(r, free)
         p = z.copy()
         rz = np.sum(r * z, axis=0)
         r0 = np.sqrt(np.sum(r * r, axis=0))
+        # inexact Newton: a loose solve far from the optimum, a tighter one near it (Eisenstat & Walker)
+        tol = float(np.clip(np.sqrt(np.max(kkt)), settings.cg_tol, 0.1))
         for _ in range(settings.cg_steps):
             Bp = hessian(p) * free
             products += 1
             alpha = rz / np.maximum(np.sum(p * Bp, axis=0), 1e-300)
             d += alpha * p
             r -= alpha * Bp
-            if np.all(np.sqrt(np.sum(r * r, axis=0)) <= settings.cg_tol * r0):
+            if np.all(np.sqrt(np.sum(r * r, axis=0)) <= tol * r0):
                 break
-            z = inv * r
+            z = precondition(r, free)
             rz_new = np.sum(r * z, axis=0)
             p = z + rz_new / np.maximum(rz, 1e-300) * p
             rz = rz_new
@@ -170,21 +178,74 @@ def _newton_cg(hessian, c, metric, x, settings: "MatrixFree"):
     return x, settings.max_steps, products, kkt
 
 
-def _coarse_start(Ts, ys, prior, cells, c):
-    """The exact solve on the coarsest aggregated grid with at most `cells` cells, spread over the fine cells."""
-    grid = Ts[0].grid
+def _coarse_grid(grid: EnvGrid, cells: int) -> EnvGrid | None:
+    """The finest grid of at most `cells` cells, strictly coarser than `grid`, by halving both sides (None if none)."""
     h, w = grid.height, grid.width
-    while h % 2 == 0 and w % 2 == 0 and h * w > cells:
+    while h % 2 == 0 and w % 2 == 0 and (h * w > cells or (h, w) == grid.shape):
         h, w = h // 2, w // 2
-    if (h, w) == grid.shape or h * w > cells or not all(isinstance(t, TransportOperator) for t in Ts):
-        return np.zeros_like(c)
-    coarse = EnvGrid(h, w)
-    Tc = [t.aggregate(coarse) for t in Ts]
-    images = [t.rows_to_image(jnp.asarray(y, jnp.float32)) for t, y in zip(Tc, ys)]
-    sol = IlluminationOperator.build(Tc, prior=prior).solve(images[0] if len(Tc) == 1 else images, throw=False)
-    env = np.asarray(sol.env, np.float64)
-    fine = np.repeat(np.repeat(env, grid.height // h, axis=0), grid.width // w, axis=1)
-    return fine.reshape(c.shape)
+    return None if (h, w) == grid.shape or h * w > cells or w < 2 else EnvGrid(h, w)
+
+
+def _jacobi(metric, ndim):
+    inv = (1 / metric).reshape((-1,) + (1,) * (ndim - 1))
+    return lambda r, free: inv * r
+
+
+class _Coarse:
+    """A coarser grid whose cells are unions of the fine ones: the warm start and the coarse half of the preconditioner.
+
+    With the piecewise-constant prolongation `P` (a coarse cell's value on each of its fine cells),
+    the coarse normal matrix `P^T B P = A_c^T A_c + ls (D P)^T W (D P) + lr P^T P` is formed exactly
+    (`A_c = A P`, the transport aggregated onto the coarse grid) and factorized. The two-level
+    preconditioner `M^-1 r = F P (P^T B P)^-1 P^T F r + diag(B)^-1 r` (F: the free set) handles the
+    smooth modes that Jacobi alone leaves to hundreds of CG steps.
+    """
+
+    def __init__(self, Ts, coarse: EnvGrid, ls, lr):
+        grid = Ts[0].grid
+        h, w = coarse.shape
+        self.grid, self.fine, self.ls, self.lr = coarse, grid, ls, lr
+        fh, fw = grid.height // h, grid.width // w
+        i, j = np.divmod(np.arange(grid.size), grid.width)
+        self.of = (i // fh) * w + j // fw
+        self.count = fh * fw
+        self.views = [_aggregate(t, self.grid) for t in Ts]
+        self.gram = sum(np.asarray(t.A, np.float64).T @ np.asarray(t.A, np.float64) for t in self.views)
+        first, second = grid.difference_pairs()
+        self.first, self.second = self.of[first], self.of[second]
+
+    def restrict(self, r):  # P^T r
+        return np.stack([np.bincount(self.of, r[:, k], self.grid.size) for k in range(r.shape[1])], 1) \
+            if r.ndim == 2 else np.bincount(self.of, r, self.grid.size)
+
+    def preconditioner(self, w, metric, ndim):
+        across = self.first != self.second  # fine edges between two coarse cells
+        a, b, we = self.first[across], self.second[across], w[across]
+        L = np.zeros((self.grid.size, self.grid.size))
+        np.add.at(L, (a, a), we)
+        np.add.at(L, (b, b), we)
+        np.add.at(L, (a, b), -we)
+        np.add.at(L, (b, a), -we)
+        factor = scipy.linalg.cho_factor(self.gram + self.ls * L + self.lr * self.count * np.eye(self.grid.size))
+        inv = (1 / metric).reshape((-1,) + (1,) * (ndim - 1))
+        return lambda r, free: free * scipy.linalg.cho_solve(factor, self.restrict(free * r))[self.of] + inv * r
+
+    def start(self, ys, prior, c):
+        """The exact solve of the coarse problem (the prior's own reweightings included), spread over the fine cells."""
+        images = [t.rows_to_image(jnp.asarray(y, jnp.float32)) for t, y in zip(self.views, ys)]
+        sol = IlluminationOperator.build(self.views, prior=prior).solve(
+            images[0] if len(self.views) == 1 else images, throw=False)
+        return np.asarray(sol.env, np.float64).reshape((self.grid.size,) + c.shape[1:])[self.of]
+
+
+def _aggregate(t, grid: EnvGrid) -> TransportMatrix:
+    """`t`'s transport on a coarser grid whose cells are unions of its own (`A P`)."""
+    if isinstance(t, TransportOperator):
+        return t.aggregate(grid)
+    fh, fw = t.grid.height // grid.height, t.grid.width // grid.width
+    A = t.A.reshape(t.A.shape[0], grid.height, fh, grid.width, fw).sum(axis=(2, 4)).reshape(t.A.shape[0], -1)
+    return TransportMatrix(A=A, albedo=t.albedo, pixels=t.pixels, grid=grid, image_shape=t.image_shape,
+                           samples=t.samples * fh * fw, pixel_samples=t.pixel_samples, seed=t.seed)
 
 
 def _as_start(grid, init, c):
