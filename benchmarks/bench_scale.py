@@ -118,6 +118,7 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="a 64x64 photo, 16x32 and 32x64 grids")
     parser.add_argument("--memory", default="8GiB", help="the memory budget of every build and solve")
     parser.add_argument("--grids", default=None, help="comma-separated HxW grids (default 32x64 .. 256x512)")
+    parser.add_argument("--skip", default="", help="comma-separated parts to leave out: layouts, dense")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     parser.add_argument("--dense", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -150,12 +151,13 @@ def main(argv=None):
 
     layouts = []
     extra = ["--quick"] if args.quick else []
-    for name, options, processes in (("1 device", [], 1), ("4 CPU devices", ["--devices", "4"], 1),
-                                     ("2 processes", [], 2)):
+    skip = set(filter(None, args.skip.split(",")))
+    for name, options, processes in () if "layouts" in skip else (
+            ("1 device", [], 1), ("4 CPU devices", ["--devices", "4"], 1), ("2 processes", [], 2)):
         result = distributed(args.out / name.replace(" ", "_"), extra + options, processes)
         layouts.append(dict(layout=name) | result)
-    base = np.load(args.out / "1_device" / "env.npy")
     for layout in layouts:
+        base = np.load(args.out / "1_device" / "env.npy")
         env = np.load(args.out / layout["layout"].replace(" ", "_") / "env.npy")
         layout["relative_difference"] = float(np.linalg.norm(env - base) / np.linalg.norm(base))
         layout["seconds_vs_1_device"] = (layout["build_seconds"] + layout["solve_seconds"]) / (
@@ -166,7 +168,8 @@ def main(argv=None):
     save(layouts=layouts)
 
     runs = []
-    plan = [(g, dense) for k, g in enumerate(grids) for dense in ((False, True) if k < 2 else (False,))]
+    plan = [(g, dense) for k, g in enumerate(grids)
+            for dense in ((False, True) if k < 2 and "dense" not in skip else (False,))]
     for (h, w), dense in plan:
         command = [sys.executable, __file__, "--out", str(args.out), "--one", f"{h}x{w}", "--memory", args.memory]
         done = subprocess.run(command + (["--dense"] if dense else []), capture_output=True, text=True)

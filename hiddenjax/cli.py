@@ -177,20 +177,12 @@ def _scene_operator(args) -> TransportOperator:
     if options.pop("bounces", 0):
         raise ValueError("the scene file asks for bounces; the matrix-free operator is direct light only: build the "
                          "matrix with `hiddenjax transport` and solve that")
-    grid = _parse_grid(args.grid) if args.grid else spec.grid
+    grid = EnvGrid(*args.grid) if args.grid else spec.grid
     t0 = time.perf_counter()
     op = transport_operator(spec.scene, spec.camera, grid, memory=args.memory or "8GiB", progress=not args.quiet,
                             **options)
     print(f"built {op} in {time.perf_counter() - t0:.1f} s")
     return op
-
-
-def _parse_grid(text: str) -> EnvGrid:
-    try:
-        height, width = (int(v) for v in text.lower().split("x"))
-        return EnvGrid(height, width)
-    except (ValueError, TypeError):
-        raise ValueError(f"--grid must be HEIGHTxWIDTH with width = 2 x height, e.g. 128x256; got {text!r}") from None
 
 
 def render_image(args) -> dict:
@@ -485,7 +477,8 @@ def _parser() -> argparse.ArgumentParser:
                                   "the matrix-free operator (any grid; exact while A^T A fits --memory)")
     p.add_argument("image", help="the photo: " + IMAGE_HELP)
     p.add_argument("-o", "--output", required=True, help="output env map, .exr or .hdr")
-    p.add_argument("--grid", help="with a scene file: the env grid HEIGHTxWIDTH (default the scene file's), e.g. 128x256")
+    p.add_argument("--grid", type=int, nargs=2, metavar=("H", "W"),
+                   help="with a scene file: the env grid's rows and columns (default the scene file's), e.g. 128 256")
     p.add_argument("--memory", help="with a scene file: the memory budget of the operator and the solve (default 8GiB)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--png", help="also write a tone-mapped PNG of the map")

@@ -90,17 +90,17 @@ def test_solve_a_scene_file_through_the_operator(built):
     """`hiddenjax solve scene.toml photo --grid` builds the matrix-free operator on a finer grid and solves."""
     hj.io.write_exr(built / "sky8.exr", np.full((16, 32, 3), 2.0, np.float32))
     assert run("render", "A.npz", "sky8.exr", "-o", "photo8.exr", cwd=built).returncode == 0
-    proc = run("solve", "scene.toml", "photo8.exr", "-o", "fine.exr", "--grid", "8x16", "--memory", "1GiB", "-q",
+    proc = run("solve", "scene.toml", "photo8.exr", "-o", "fine.exr", "--grid", 8, 16, "--memory", "1GiB", "-q",
                cwd=built)
     assert proc.returncode == 0, proc.stderr
     assert "TransportOperator(120 pixels x 128 env pixels" in proc.stdout
     env = hj.io.read_exr(built / "fine.exr")
     assert env.shape == (8, 16, 3)
     np.testing.assert_allclose(env[:4], 2.0, rtol=3e-2)  # the constant sky again, on the finer grid
-    proc = run("solve", "A.npz", "photo8.exr", "-o", "x.exr", "--grid", "8x16", cwd=built)
+    proc = run("solve", "A.npz", "photo8.exr", "-o", "x.exr", "--grid", 8, 16, cwd=built)
     assert proc.returncode != 0 and "apply to a scene file" in proc.stderr
-    proc = run("solve", "scene.toml", "photo8.exr", "-o", "x.exr", "--grid", "8by16", cwd=built)
-    assert proc.returncode != 0 and "HEIGHTxWIDTH" in proc.stderr
+    proc = run("solve", "scene.toml", "photo8.exr", "-o", "x.exr", "--grid", 8, 1, cwd=built)
+    assert proc.returncode != 0 and "width must be >= 2" in proc.stderr
 
 
 @pytest.mark.parametrize(

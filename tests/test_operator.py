@@ -39,7 +39,7 @@ def test_operator_holds_the_dense_matrix_to_round_off(teapot):
     assert close(op.rmatvec(y), A.T @ y, 1e-6)
     assert close(op.column_energy(), np.sum(A * A, axis=0), 1e-6)
     assert close(op.gram(), A.T @ A, 1e-6)
-    assert close(op.render(x.reshape(GRID.shape + (3,))), hj.render(T, x.reshape(GRID.shape + (3,))), 1e-6)
+    assert close(hj.render(op, x.reshape(GRID.shape + (3,))), hj.render(T, x.reshape(GRID.shape + (3,))), 1e-6)
     # the sparse part is sparse: a table point sees the teapot in a small part of the sky
     stored = sum(g.rows.nnz for g in op._groups)
     assert stored < 0.5 * A.size

@@ -24,6 +24,7 @@ from ._sharded import row_mesh_of, sharded_column_energy, sharded_gram, sharded_
 # sun, prefer less smoothing (1e-3 gives linear SSIM 0.97 but a speckled sky).
 DEFAULT_SMOOTH = 0.03
 DEFAULT_RIDGE = 1e-4
+REFERENCE_CELLS = 2048  # the 32x64 grid the relative weights were tuned on (regularization_weights)
 DEFAULT_PRIOR = "hdr"  # the prior of solve_illumination(T, image) without weights (measured on real HDRIs)
 
 
@@ -175,14 +176,20 @@ def views(T) -> tuple[TransportMatrix | TransportOperator, ...]:
 def regularization_weights(T, smooth, ridge, absolute: bool = False):
     """Absolute `(ls, lr)` of eq. 5.3: relative weights times `mean(diag(A^T A))` (docs/conventions.md, "Regularization weights").
 
-    With several views, `A^T A` is the sum over views.
+    With several views, `A^T A` is the sum over views. On grids finer than 32x64 (`N > 2048`,
+    `r = N / 2048`) the smoothness is also multiplied by `r^2` and the ridge by `r`, so a weight
+    means on them what it means on the 32x64 grid: `mean(diag(A^T A))` falls as the square of a
+    cell's solid angle, while `||D x||^2` of a smooth map stays the same at any resolution and
+    `||x||^2` grows with the number of cells (without this, 64x128 would be smoothed 16 times
+    less than 32x64, and its dim sky breaks into speckle: docs, experiments "Finer maps").
     """
     Ts = views(T)
     dtype = Ts[0].dtype
     if absolute:
         return jnp.asarray(smooth, dtype), jnp.asarray(ridge, dtype)
     scale = jnp.mean(sum(column_energy(t) for t in Ts))
-    return smooth * scale, ridge * scale
+    finer = max(1.0, Ts[0].shape[1] / REFERENCE_CELLS)
+    return smooth * scale * finer**2, ridge * scale * finer
 
 
 def _sharded(t) -> bool:

@@ -136,8 +136,11 @@ def check_envmap(grid: EnvGrid, envmap):
 def render(T: TransportMatrix, envmap) -> jax.Array:
     """The image `A x` of an env map (eq. 5.2), `(H, W)` or `(H, W, C)`, zero outside the mask.
 
-    **Arguments:** `T` a `TransportMatrix`; `envmap (h, w)` or `(h, w, C)` linear radiance on
-    `T.grid`. Pure JAX: jit, vmap and differentiate freely.
+    **Arguments:** `T` a `TransportMatrix` (or a matrix-free `TransportOperator`: its own
+    `render`, eager); `envmap (h, w)` or `(h, w, C)` linear radiance on `T.grid`. Pure JAX for a
+    matrix: jit, vmap and differentiate freely.
     """
+    if not isinstance(T, TransportMatrix) and hasattr(T, "render"):
+        return T.render(envmap)  # a TransportOperator (hj.transport_operator)
     x = check_envmap(T.grid, envmap)
     return T.rows_to_image(T.A @ x.astype(T.A.dtype))
