@@ -203,11 +203,10 @@ class _Coarse:
 
     def __init__(self, Ts, coarse: EnvGrid, ls, lr):
         grid = Ts[0].grid
-        h, w = coarse.shape
-        self.grid, self.fine, self.ls, self.lr = coarse, grid, ls, lr
-        fh, fw = grid.height // h, grid.width // w
+        self.grid, self.ls, self.lr = coarse, ls, lr
+        fh, fw = grid.height // coarse.height, grid.width // coarse.width
         i, j = np.divmod(np.arange(grid.size), grid.width)
-        self.of = (i // fh) * w + j // fw
+        self.of = (i // fh) * coarse.width + j // fw
         self.count = fh * fw
         self.views = [_aggregate(t, self.grid) for t in Ts]
         self.gram = sum(np.asarray(t.A, np.float64).T @ np.asarray(t.A, np.float64) for t in self.views)

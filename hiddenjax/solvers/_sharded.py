@@ -17,7 +17,8 @@ from jax.experimental import multihost_utils
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as Spec
 
-ROWS = "rows"  # hj.transport's mesh axis of A's pixel rows
+from ..transport._sharding import ROWS  # the mesh axis of A's pixel rows
+
 
 
 def row_mesh_of(A):
