@@ -20,7 +20,6 @@ from jax.sharding import PartitionSpec as Spec
 from ..transport._sharding import ROWS  # the mesh axis of A's pixel rows
 
 
-
 def row_mesh_of(A):
     """The mesh over which `A`'s rows are split, or None for an unsharded (or one-device) `A`."""
     sharding = getattr(A, "sharding", None)
