@@ -16,6 +16,7 @@ if _jax.config.jax_default_matmul_precision is None:
 
 from . import corners as corners
 from . import cues as cues
+from . import design as design
 from . import io as io
 from . import metrics as metrics
 from . import photo as photo

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import hiddenjax as hj
+from hiddenjax.transport._embree import RayCaster
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
@@ -31,3 +32,19 @@ def plane_only(small_setup):
 
 def relrmse(a, b):
     return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(np.asarray(b)))
+
+
+def hard_on_the_same_samples(scene, st):
+    """The estimator of `SoftTransport.matrix` with Embree's hard visibility on the same directions."""
+    rec = st.receivers
+    x = np.stack([np.asarray(rec.scatter(rec.points[..., i])) for i in range(3)], -1).astype(np.float64)
+    W = np.asarray(st.directions, np.float64)
+    (J, K, _), Q = W.shape, len(x)
+    V = ~RayCaster(scene).occluded(np.repeat(x, J * K, axis=0), np.tile(W.reshape(-1, 3), (Q, 1))).reshape(Q, J, K)
+    cos = np.einsum("qc,jkc->qjk", np.asarray(st.normals, np.float64), W)
+    scale = np.asarray(st.omega)[None, :] / K
+    E = np.where(st.above, np.asarray(st.closed) - scale * np.sum((1 - V) * cos, -1),
+                 np.where(st.straddle, scale * np.sum(V * np.maximum(cos, 0), -1), 0.0))
+    A = np.zeros((Q, st.grid.size))
+    A[:, np.asarray(st.columns)] = np.asarray(st.albedo)[:, None] / np.pi * E
+    return A

@@ -8,7 +8,7 @@ import trimesh
 from jax.test_util import check_grads
 
 import hiddenjax as hj
-from conftest import relrmse
+from conftest import hard_on_the_same_samples, relrmse
 from hiddenjax import shadows as sh
 from hiddenjax.transport._embree import RayCaster
 
@@ -479,25 +479,9 @@ def test_soft_transport_is_exact_without_occluders(plane_only):
     np.testing.assert_allclose(soft.A, hard.A, rtol=1e-5, atol=1e-7 * float(hard.A.max()))
 
 
-def _hard_transport_on_the_same_samples(scene, st):
-    """The estimator of `SoftTransport.matrix` with Embree's hard visibility on the same directions."""
-    rec = st.receivers
-    x = np.stack([np.asarray(rec.scatter(rec.points[..., i])) for i in range(3)], -1).astype(np.float64)
-    W = np.asarray(st.directions, np.float64)
-    (J, K, _), Q = W.shape, len(x)
-    V = ~RayCaster(scene).occluded(np.repeat(x, J * K, axis=0), np.tile(W.reshape(-1, 3), (Q, 1))).reshape(Q, J, K)
-    cos = np.einsum("qc,jkc->qjk", np.asarray(st.normals, np.float64), W)
-    scale = np.asarray(st.omega)[None, :] / K
-    E = np.where(st.above, np.asarray(st.closed) - scale * np.sum((1 - V) * cos, -1),
-                 np.where(st.straddle, scale * np.sum(V * np.maximum(cos, 0), -1), 0.0))
-    A = np.zeros((Q, st.grid.size))
-    A[:, np.asarray(st.columns)] = np.asarray(st.albedo)[:, None] / np.pi * E
-    return A
-
-
 def test_soft_transport_converges_to_the_embree_matrix_as_T_grows(soft_transport):
     (scene, cam), grid, st = soft_transport
-    same_samples = _hard_transport_on_the_same_samples(scene, st)
+    same_samples = hard_on_the_same_samples(scene, st)
     # Another path: Embree's builder, 256 independent directions per point and env pixel.
     embree = hj.transport_matrix(scene, cam, grid, samples=256, pixel_samples=1, seed=0, progress=False)
     assert np.array_equal(np.asarray(st.pixels), np.asarray(embree.pixels))

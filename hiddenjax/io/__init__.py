@@ -17,6 +17,7 @@ from ._images import write_png as write_png
 from ._sheet import contact_sheet as contact_sheet
 from ._sheet import panel as panel
 from ._sheet import write_map as write_map
+from ._sheet import write_plot as write_plot
 from ._files import atomic_path as atomic_path
 from ._files import read_toml as read_toml
 from ._files import write_text as write_text

@@ -3,6 +3,7 @@
 import cv2
 import numpy as np
 
+from ._files import atomic_path
 from ._images import colormap, tonemap, write_png
 
 
@@ -72,3 +73,31 @@ def contact_sheet(path, panels, height: int = 256, columns: int | None = None) -
     sheet = np.concatenate(rows, axis=0)
     write_png(path, sheet)
     return sheet
+
+
+def write_plot(path, curves: dict, xlabel: str = "", ylabel: str = "", log: bool = False, title: str = "") -> None:
+    """A line plot (PNG, matplotlib's Agg backend) of `curves = {label: (x, y)}`, written atomically.
+
+    `log` puts the y axis on a log scale.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not curves:
+        raise ValueError("write_plot needs at least one curve")
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for label, (x, y) in curves.items():
+        ax.plot(np.asarray(x), np.asarray(y), label=label)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if log:
+        ax.set_yscale("log")
+    if title:
+        ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)

@@ -181,21 +181,38 @@ class Occluder(eqx.Module):
     @classmethod
     def from_triangles(cls, triangles, surface=None, cluster: int = 32) -> "Occluder":
         """Cluster triangles `(F, 3, 3)` (optionally labelled by `surface (F,)`) into groups of `cluster`."""
+        index, owner = cls.clusters(triangles, surface, cluster)
+        return cls.gather(np.asarray(triangles, np.float32), index, owner)
+
+    @staticmethod
+    def clusters(triangles, surface=None, cluster: int = 32) -> tuple[np.ndarray, tuple[int, ...]]:
+        """The grouping `from_triangles` makes: `index (C, cluster)` into the `F` triangles (-1 pads) and each group's surface.
+
+        Keep it to rebuild the occluder from moved triangles of the same mesh (`gather`), e.g.
+        inside a traced optimization where the triangles are a function of design parameters.
+        """
         tri = np.asarray(triangles, dtype=np.float32)
         if tri.ndim != 3 or tri.shape[1:] != (3, 3) or len(tri) == 0:
             raise ValueError(f"triangles must be a non-empty (F, 3, 3) array, got shape {tri.shape}")
         if not np.all(np.isfinite(tri)):
             raise ValueError("occluder triangles contain non-finite vertices")
         labels = np.full(len(tri), -1) if surface is None else np.asarray(surface).reshape(-1)
-        blocks, owner = [], []
+        index, owner = [], []
         for s in np.unique(labels):
             sel = np.nonzero(labels == s)[0]
             for g in _kd_groups(tri[sel].mean(axis=1), cluster):
-                block = np.zeros((cluster, 3, 3), np.float32)
-                block[: len(g)] = tri[sel[g]]
-                blocks.append(block)
+                row = np.full(cluster, -1)
+                row[: len(g)] = sel[g]
+                index.append(row)
                 owner.append(int(s))
-        return cls(jnp.asarray(np.stack(blocks)), tuple(owner))
+        return np.stack(index), tuple(owner)
+
+    @classmethod
+    def gather(cls, triangles, index, surface: tuple[int, ...]) -> "Occluder":
+        """The occluder of triangles `(F, 3, 3)` (may be traced) grouped by `clusters`' `index` and `surface`."""
+        index = jnp.asarray(index)
+        tri = jnp.asarray(triangles)[jnp.maximum(index, 0)]
+        return cls(jnp.where((index >= 0)[..., None, None], tri, 0.0), tuple(surface))
 
     @classmethod
     def from_scene(cls, scene, cluster: int = 32) -> "Occluder":

@@ -1,0 +1,116 @@
+"""Design objectives from the posterior of the linear inverse (thesis 6.2-6.3).
+
+With a Gaussian prior of precision `R = ls D^T D + lr I` (the weights of the solver's L2 prior,
+eq. 5.3) and white pixel noise of variance `sigma^2`, the posterior covariance of the map is
+`C = sigma^2 (A^T A + R)^-1`. On the cells of a band of directions `b` (default: the upper
+hemisphere, where an object on a plane sees the sky):
+
+- A-optimal: `tr(C_bb)`, the expected squared error summed over the band's cells;
+- D-optimal: `log det C_bb`, the log-volume of the band's uncertainty ellipsoid;
+- expected error over skies `x_s`: the linear estimate `xhat = G y`, `G = (A^T A + R)^-1 A^T`,
+  of `y = A x_s + n` has `E ||xhat - x_s||_b^2 = ||(G A - I) x_s||_b^2 + sigma^2 tr((G G^T)_bb)`;
+  each sky's error is divided by `||x_s||_b^2` and the mean over skies taken, `sigma` being
+  `noise` times the sky's mean pixel on the bare plane.
+
+`sigma` is 1 for the first two (it scales them by a constant). The weights are fixed once, in
+absolute terms, from the bare plane (`mean(diag(A0^T A0))` of the plane without the occluder):
+every candidate, design or fixture, is judged with the same prior. The objectives are smooth
+in `A`, so `jax.grad` through `A(theta)` gives the design gradient.
+"""
+
+from typing import Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ..scene import EnvGrid
+from ..solvers import L2Prior, hdr_prior, prior_matrix
+
+KINDS = ("a_optimal", "d_optimal", "expected_error")
+
+
+class Objective(eqx.Module):
+    """One design objective (`kind`) with its fixed prior precision `R (N, N)` and band of cells.
+
+    Call it on a transport matrix `A (P, N)` (any rows: only `A^T A` enters). Lower is better.
+    **Fields:** `R`, `band` the env-cell indices scored, `skies (S, N)` grey maps for
+    `"expected_error"`, `sigma (S,)` their noise levels; `kind`.
+    """
+
+    R: Float[Array, "N N"]
+    band: Array
+    skies: Float[Array, "S N"]
+    sigma: Float[Array, " S"]
+    kind: str = eqx.field(static=True)
+
+    @classmethod
+    def build(cls, bare: Float[Array, "P N"], grid: EnvGrid, kind: Literal["a_optimal", "d_optimal", "expected_error"]
+              = "a_optimal", *, prior: L2Prior | None = None, band: str | np.ndarray = "upper", skies=None,
+              noise: float = 0.01) -> "Objective":
+        """The objective with the prior's weights made absolute on the bare plane's transport `bare`.
+
+        `prior`: the L2 prior whose weights define `R` (default `hj.solvers.hdr_prior()`, the
+        solver's default: its reweighting is nonlinear, so its Gaussian part, the first of its
+        solves, is what is designed for). `band`: "upper", "all", or cell indices. `skies`:
+        env maps `(S, H, W[, 3])` on `grid` for `"expected_error"` (channels averaged).
+        """
+        if kind not in KINDS:
+            raise ValueError(f"unknown objective {kind!r}; choose one of {KINDS}")
+        prior = hdr_prior() if prior is None else prior
+        if not isinstance(prior, L2Prior):
+            raise ValueError(f"design objectives need an L2 prior (hj.solvers.L2Prior / hdr_prior()), got {prior!r}")
+        bare = jnp.asarray(bare)
+        if bare.ndim != 2 or bare.shape[1] != grid.size:
+            raise ValueError(f"bare must be a (P, {grid.size}) transport matrix on the grid, got {bare.shape}")
+        scale = 1.0 if prior.absolute else float(jnp.mean(jnp.sum(bare * bare, axis=0)))
+        R = prior_matrix(grid, prior.smooth * scale, prior.ridge * scale, bare.dtype)
+        if isinstance(band, str):
+            if band not in ("upper", "all"):
+                raise ValueError(f"band must be 'upper', 'all' or cell indices, got {band!r}")
+            rows = grid.height // 2 if band == "upper" else grid.height
+            band = np.arange(rows * grid.width)
+        band = np.asarray(band).reshape(-1)
+        if band.size == 0 or band.min() < 0 or band.max() >= grid.size:
+            raise ValueError(f"band must hold cell indices in [0, {grid.size}), got {band}")
+        if kind == "expected_error":
+            if skies is None:
+                raise ValueError("the 'expected_error' objective needs skies: env maps (S, H, W[, 3]) on the grid")
+            skies = np.asarray(skies, np.float32)
+            if skies.ndim == 4:
+                skies = skies.mean(-1)
+            if skies.ndim != 3 or skies.shape[1:] != grid.shape or not np.all(np.isfinite(skies)) or np.any(skies < 0):
+                raise ValueError(f"skies must be finite, non-negative maps (S, {grid.height}, {grid.width}[, 3]), "
+                                 f"got shape {skies.shape}")
+            skies = jnp.asarray(skies.reshape(len(skies), -1))
+            sigma = noise * jnp.mean(skies @ bare.T, axis=1)
+        else:
+            skies, sigma = jnp.zeros((0, grid.size), bare.dtype), jnp.ones((0,), bare.dtype)
+        return cls(R, jnp.asarray(band), skies, sigma, kind)
+
+    def covariance(self, A: Float[Array, "P N"]) -> Float[Array, "N N"]:
+        """`C = (A^T A + R)^-1` (unit noise), symmetrized."""
+        C = jnp.linalg.inv(A.T @ A + self.R)
+        return (C + C.T) / 2
+
+    def uncertainty(self, A: Float[Array, "P N"]) -> Float[Array, " N"]:
+        """Posterior standard deviation of each env cell, `sqrt(diag C)` (unit noise)."""
+        return jnp.sqrt(jnp.diagonal(self.covariance(A)))
+
+    def leverage(self, A: Float[Array, "P N"]) -> Float[Array, " P"]:
+        """`h_ii = a_i C a_i^T` (eq. 6.2) of each row under this objective's prior."""
+        return jnp.sum((A @ self.covariance(A)) * A, axis=1)
+
+    def __call__(self, A: Float[Array, "P N"]) -> Float[Array, ""]:
+        C = self.covariance(A)
+        Cb = C[self.band][:, self.band]
+        if self.kind == "a_optimal":
+            return jnp.trace(Cb)
+        if self.kind == "d_optimal":
+            return jnp.linalg.slogdet(Cb)[1]
+        G = C @ A.T  # (N, P)
+        bias = (G @ (A @ self.skies.T) - self.skies.T)[self.band]  # (b, S)
+        noise = jnp.sum(G[self.band] ** 2)
+        truth = jnp.sum(self.skies.T[self.band] ** 2, axis=0)
+        return jnp.mean((jnp.sum(bias**2, axis=0) + self.sigma**2 * noise) / truth)
