@@ -128,7 +128,7 @@ def test_usage_errors_exit_2_with_help_hint(built):
     assert proc.returncode == 2 and "--help" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     proc = run("solve", "A.npz", "photo.exr", "-o", "env.exr", "--prior", "sparse", cwd=built)
     assert proc.returncode == 2 and "invalid choice: 'sparse'" in proc.stderr
-    for command in ("transport", "solve", "render", "cues", "demo"):
+    for command in ("transport", "solve", "render", "cues", "demo", "design"):
         assert run(command, "--help", cwd=built).returncode == 0
 
 
@@ -188,3 +188,19 @@ def test_demo_quick(tmp_path):
     assert results["kkt_residual"] < 1e-3 and results["env_errors"]["ssim"] > 0.5
     for name in ("demo.png", "env.exr", "photo.exr", "A.npz", "leverage.png", "cooks_distance.png"):
         assert (tmp_path / "demo" / name).is_file()
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (("--height", "0.2"), "plate < height <= footprint"),
+        (("--controls", "1"), "controls"),
+        (("--steps", "0"), "--steps must be at least 1"),
+        (("--footprint", "-1"), "footprint must be positive"),
+    ],
+)
+def test_design_bad_input_one_line_no_output(tmp_path, capsys, args, words):
+    assert main(["design", "-o", str(tmp_path / "out"), *args]) == 1
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0] and lines[0].startswith("hiddenjax design: error:")
+    assert not (tmp_path / "out").exists()

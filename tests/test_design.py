@@ -146,9 +146,10 @@ def test_design_lowers_the_objective_under_hard_shadows(problem):
 
 def test_reconstruction_study_scores_every_mesh_on_rendered_photos():
     pano = hj.scenes.procedural_sky(32, 64, sources=0)
-    study = hd.reconstruction_study({"sphere": hj.scene.sphere(), "box": trimesh.creation.box([1, 1, 1])},
+    study, estimates = hd.reconstruction_study({"sphere": hj.scene.sphere(), "box": trimesh.creation.box([1, 1, 1])},
                                     {"sky": pano}, hj.EnvGrid(8, 16), width=16, height=16, samples=8)
     assert set(study) == {"sphere", "box"}
     for runs in study.values():
         assert set(runs) == {"sky", "mean"} and -1 <= runs["sky"]["ssim_tm"] <= 1
         assert runs["mean"]["relrmse"] == runs["sky"]["relrmse"]
+    assert estimates["box"]["sky"].shape == (8, 16, 3)

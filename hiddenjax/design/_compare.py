@@ -17,28 +17,30 @@ from ._optimize import stage
 
 def reconstruction_study(meshes: dict[str, trimesh.Trimesh], panoramas: dict[str, np.ndarray], grid: EnvGrid, *,
                          footprint: float = 0.1, width: int = 64, height: int = 64, elevation: float = 90.0,
-                         prior=None, samples: int = 128, pixel_samples: int = 2, seed: int = 1) -> dict:
+                         prior=None, samples: int = 128, pixel_samples: int = 2, seed: int = 1) -> tuple[dict, dict]:
     """Reconstruct every panorama with every occluder and score it (`hj.metrics.env_errors`, upper hemisphere).
 
     Each mesh stands on the plane of `stage` (scaled to `footprint`); the photo is
     `reference_render` of the panorama (`samples` paths per pixel sample), the solve
     `IlluminationOperator.build(T, prior)` on the Embree matrix, the truth the panorama
-    area-averaged onto `grid`. **Returns** `{mesh: {panorama: errors}}` with a `"mean"` entry per
-    mesh holding the mean of each error over the panoramas.
+    area-averaged onto `grid`. **Returns** `(scores, estimates)`: `scores[mesh][panorama]` the
+    errors, with a `"mean"` entry per mesh holding each error's mean over the panoramas;
+    `estimates[mesh][panorama]` the recovered map `(H, W, 3)`.
     """
     if not meshes or not panoramas:
         raise ValueError("reconstruction_study needs at least one mesh and one panorama")
-    out = {}
+    out, maps = {}, {}
     for name, mesh in meshes.items():
         setup = stage(mesh, footprint, width=width, height=height, elevation=elevation)
         T = transport_matrix(setup.scene, setup.camera, grid, progress=False)
         op = IlluminationOperator.build(T, prior=prior) if prior is not None else IlluminationOperator.build(T)
-        runs = {}
+        runs, maps[name] = {}, {}
         for sky, pano in panoramas.items():
             photo = reference_render(setup.scene, setup.camera, pano, samples=samples, pixel_samples=pixel_samples,
                                      seed=seed)
             sol = op.solve(photo, throw=False)
-            runs[sky] = env_errors(np.asarray(sol.env), grid.downsample(pano))
+            maps[name][sky] = np.asarray(sol.env)
+            runs[sky] = env_errors(maps[name][sky], grid.downsample(pano))
         runs["mean"] = {k: float(np.mean([r[k] for r in runs.values()])) for k in next(iter(runs.values()))}
         out[name] = runs
-    return out
+    return out, maps
