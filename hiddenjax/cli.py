@@ -303,8 +303,11 @@ def design(args) -> dict:
     if steps < 1:
         raise ValueError(f"--steps must be at least 1, got {steps}")
     size = 20 if args.quick else 32
-    grid = EnvGrid(8, 16)
-    skies = np.stack([grid.downsample(procedural_sky(64, 128, sun=sun, seed=k)) for k, sun in enumerate(DESIGN_SUNS)])
+    grid = EnvGrid(*args.grid)
+    if args.skies:
+        skies = np.stack([grid.downsample(io.read_image(path)) for path in args.skies])
+    else:
+        skies = np.stack([grid.downsample(procedural_sky(64, 128, sun=sun, seed=k)) for k, sun in enumerate(DESIGN_SUNS)])
     problem = _design.DesignProblem.build(shape, grid, kind=args.objective, width=size, height=size, skies=skies,
                                           seed=args.seed)
 
@@ -322,7 +325,7 @@ def design(args) -> dict:
     block = trimesh.creation.box([args.footprint, args.height, args.footprint])
     candidates = {"design": mesh, **{name: fixture(name) for name in DESIGN_FIXTURES}, "box": block}
     hard = {name: problem.hard_matrix(m) for name, m in candidates.items()}
-    scores = {name: float(problem.objective(T.A)) for name, T in hard.items()}
+    scores = {name: problem.evaluate(T.A) for name, T in hard.items()}
     sky = procedural_sky(128, 256, sun=(1.05, 2.2), sources=0)  # a low sun: long shadows
     upper = grid.height // 2
     bare_std = np.asarray(problem.objective.uncertainty(problem.bare_matrix())).reshape(grid.shape)[:upper]
@@ -346,7 +349,7 @@ def design(args) -> dict:
     results = dict(
         config=dict(quick=args.quick, objective=args.objective, steps=steps, footprint=args.footprint,
                     height=args.height, plate=args.plate, controls=args.controls, image=size, grid=list(grid.shape),
-                    seed=args.seed),
+                    seed=args.seed, skies=[str(p) for p in args.skies] if args.skies else "procedural"),
         seconds=round(result.seconds, 1),
         history=[float(v) for v in result.history],
         hard_objective=scores,
@@ -614,6 +617,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--plate", type=float, default=0.005, help="base plate thickness in metres (default 0.005)")
     p.add_argument("--controls", type=int, default=5, help="height parameters per side (default 5)")
     p.add_argument("--seed", type=int, default=0, help="random start (default 0)")
+    p.add_argument("--grid", type=int, nargs=2, default=(8, 16), metavar=("H", "W"),
+                   help="env grid the objective is computed on (default 8 16; 16 32 for 'reconstruction')")
+    p.add_argument("--skies", nargs="+", metavar="PANORAMA",
+                   help="lat-long panoramas (.hdr/.exr) the expected_error and reconstruction objectives average "
+                        "over (default: six procedural skies)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     p.set_defaults(run=design)
 

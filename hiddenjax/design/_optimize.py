@@ -99,9 +99,22 @@ class DesignProblem(eqx.Module):
         return transport_matrix(setup.scene, setup.camera, self.grid, samples=samples, pixel_samples=pixel_samples,
                                 seed=seed, progress=False)
 
+    def evaluate(self, A: Float[Array, "P N"]) -> float:
+        """The objective of any transport matrix `A (P, N)` on this grid, compiled (one compilation per `P`).
+
+        Compiled rather than eager: the reconstruction objective's solver loops, run eagerly,
+        would be compiled anew on every call.
+        """
+        return float(_evaluate(self.objective, jnp.asarray(A)))
+
     def score(self, mesh: trimesh.Trimesh, **kwargs) -> float:
         """The objective of `mesh` under hard visibility (`hard_matrix`)."""
-        return float(self.objective(self.hard_matrix(mesh, **kwargs).A))
+        return self.evaluate(self.hard_matrix(mesh, **kwargs).A)
+
+
+@eqx.filter_jit
+def _evaluate(objective: Objective, A):
+    return objective(A)
 
 
 class Design(eqx.Module):
