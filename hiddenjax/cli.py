@@ -11,8 +11,9 @@
     hiddenjax reconstruct board.toml photo... --object MESH --at X Z [--yaw DEG] [--size M]
                           (--intrinsics camera.toml | --fov DEG) [--times T...] -o out/
     hiddenjax video A.npz clip.mp4 -o maps/ [--background median|first] [--video maps.mp4]
-    hiddenjax design -o out/ [--quick] [--objective a_optimal|d_optimal|expected_error] [--steps N]
-                     [--footprint M] [--height M] [--controls G] [--seed S]
+    hiddenjax design -o out/ [--quick] [--objective a_optimal|d_optimal|expected_error|reconstruction]
+                     [--steps N] [--footprint M] [--height M] [--controls G] [--seed S] [--grid H W]
+                     [--skies PANORAMA...]
 
 Exit status 0 on success, 1 when the input is bad (one line on stderr says what and how to fix
 it; no output file is left behind), 2 for a malformed command line.
@@ -604,8 +605,9 @@ def _parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("design", help="optimize a printable occluder (height field) for the lowest reconstruction error",
                        description="Designing the object camera: a height field on a square base plate, optimized "
-                                   "through the soft shadow transport for an objective of the posterior (A-optimal, "
-                                   "D-optimal, or expected error over procedural skies) under the default prior, "
+                                   "through the soft shadow transport for an objective under the default prior "
+                                   "(A-optimal, D-optimal, expected error over skies, or the default solve's "
+                                   "reconstruction error over skies), "
                                    "then checked with Embree's hard shadows against the bundled fixtures. Writes "
                                    "design.stl, design.png, objective.png and design.json.")
     p.add_argument("-o", "--out", default="out/design", help="output folder (default out/design)")

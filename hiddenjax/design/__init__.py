@@ -1,7 +1,8 @@
 """Designing the object camera (thesis 6.3): printable occluders optimized for the lowest reconstruction error.
 
-A parameterized shape (`HeightField`), a stage and an objective from the posterior of the linear
-inverse (`Objective`: A-optimal, D-optimal, expected error over skies) make a `DesignProblem`;
+A parameterized shape (`HeightField`), a stage and an objective (`Objective`: A-optimal,
+D-optimal and expected error over skies of the Gaussian posterior, or the default solve's
+reconstruction error over skies) make a `DesignProblem`;
 `design_occluder` minimizes it through the differentiable soft transport, and `DesignProblem.score`
 checks a mesh, designed or not, with Embree's hard visibility.
 """

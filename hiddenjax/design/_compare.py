@@ -33,7 +33,7 @@ def reconstruction_study(meshes: dict[str, trimesh.Trimesh], panoramas: dict[str
     for name, mesh in meshes.items():
         setup = stage(mesh, footprint, width=width, height=height, elevation=elevation)
         T = transport_matrix(setup.scene, setup.camera, grid, progress=False)
-        op = IlluminationOperator.build(T, prior=prior) if prior is not None else IlluminationOperator.build(T)
+        op = IlluminationOperator.build(T, prior=prior)  # None: the default prior
         runs, maps[name] = {}, {}
         for sky, pano in panoramas.items():
             photo = reference_render(setup.scene, setup.camera, pano, samples=samples, pixel_samples=pixel_samples,

@@ -61,7 +61,8 @@ class Objective(eqx.Module):
 
     @classmethod
     def build(cls, bare: Float[Array, "P N"], grid: EnvGrid,
-              kind: Literal["a_optimal", "d_optimal", "expected_error", "reconstruction"] = "a_optimal", *, prior: L2Prior | None = None, band: str | np.ndarray = "upper", skies=None,
+              kind: Literal["a_optimal", "d_optimal", "expected_error", "reconstruction"] = "a_optimal", *,
+              prior: L2Prior | None = None, band: str | np.ndarray = "upper", skies=None,
               noise: float = 0.01) -> "Objective":
         """The objective with the prior's weights made absolute on the bare plane's transport `bare`.
 

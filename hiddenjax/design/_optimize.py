@@ -25,6 +25,8 @@ from ..transport import transport_matrix
 from ._heightfield import HeightField
 from ._objectives import Objective
 
+LIFT = 1e-4  # of the footprint: how far `object_on_plane` (so `stage`) lifts an object off the plane
+
 
 def stage(mesh: trimesh.Trimesh, footprint: float, *, width: int = 32, height: int = 32, elevation: float = 90.0):
     """The set-up every candidate is judged on: `mesh` scaled to `footprint` (its largest extent) on a plane.
@@ -68,20 +70,20 @@ class DesignProblem(eqx.Module):
         setup = stage(box, shape.footprint, width=width, height=height, elevation=elevation)
         soft = SoftTransport.from_scene(setup.scene, setup.camera, grid, samples=samples, seed=seed)
         plane = np.asarray(setup.scene[0].triangles, np.float32)
-        lift = 1e-4 * shape.footprint  # as object_on_plane lifts an object off the plane
-        design = np.asarray(shape.triangles(shape.init(jax.random.key(0))), np.float32) + [0, lift, 0]
+        design = np.asarray(shape.triangles(shape.init(jax.random.key(0))), np.float32) + [0, LIFT * shape.footprint, 0]
         index, surface = Occluder.clusters(np.concatenate([plane, design]),
                                            np.r_[np.zeros(len(plane), int), np.ones(len(design), int)])
-        bare = soft.matrix(Occluder.from_triangles(plane, np.zeros(len(plane), int)))  # exact: nothing occludes
-        objective = Objective.build(bare, grid, kind, prior=prior, band=band, skies=skies, noise=noise)
-        return cls(shape, soft, jnp.asarray(plane), jnp.asarray(index), surface, objective, setup.camera, grid, float(elevation))
+        objective = Objective.build(_bare_matrix(soft, plane), grid, kind, prior=prior, band=band, skies=skies,
+                                    noise=noise)
+        return cls(shape, soft, jnp.asarray(plane), jnp.asarray(index), surface, objective, setup.camera, grid,
+                   float(elevation))
 
     def bare_matrix(self) -> Float[Array, "P N"]:
         """`A` of the plane alone (no occluder): the reference the prior's weights are fixed on."""
-        return self.soft.matrix(Occluder.gather(self.plane, jnp.arange(len(self.plane))[None], (0,)))
+        return _bare_matrix(self.soft, self.plane)
 
     def occluder(self, theta) -> Occluder:
-        lift = jnp.asarray([0.0, 1e-4 * self.shape.footprint, 0.0])  # as `stage` lifts a mesh off the plane
+        lift = jnp.asarray([0.0, LIFT * self.shape.footprint, 0.0])
         design = self.shape.triangles(theta) + lift[None, None]
         return Occluder.gather(jnp.concatenate([self.plane, design.astype(self.plane.dtype)]), self.index, self.surface)
 
@@ -110,6 +112,11 @@ class DesignProblem(eqx.Module):
     def score(self, mesh: trimesh.Trimesh, **kwargs) -> float:
         """The objective of `mesh` under hard visibility (`hard_matrix`)."""
         return self.evaluate(self.hard_matrix(mesh, **kwargs).A)
+
+
+def _bare_matrix(soft: SoftTransport, plane) -> Float[Array, "P N"]:
+    """The soft transport with the plane's own triangles as the only occluder: exact, nothing occludes."""
+    return soft.matrix(Occluder.from_triangles(plane, np.zeros(len(plane), int)))
 
 
 @eqx.filter_jit
