@@ -15,22 +15,28 @@ def _y_up(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 
 def teapot(sections: int = 64) -> trimesh.Trimesh:
-    """A teapot-like object (body, lid knob, spout, handle) of about 4.4k faces, 1 unit tall."""
+    """A teapot-like object (body, lid knob, spout, handle) of about 4.4k faces, 1 unit tall.
+
+    `sections` (>= 8) sets the resolution: segments around the body; the profile, spout, handle
+    and knob follow it (`sections=12`: about 300 faces, the same shape, for fast tests).
+    """
+    if sections < 8:
+        raise ValueError(f"sections must be >= 8, got {sections}")
     # Body profile (radius, height), closed at both poles so the revolved surface is capped.
-    t = np.linspace(0, 1, 24)
+    t = np.linspace(0, 1, max(8, 24 * sections // 64))
     height = 0.62 * t
     radius = 0.5 * np.sin(np.pi * (0.12 + 0.8 * t)) + 0.02
     radius[0] = radius[-1] = 0.0
     body = _y_up(trimesh.creation.revolve(np.stack([radius, height], -1)[::-1], sections=sections))
-    knob = trimesh.creation.icosphere(subdivisions=2, radius=0.07)
+    knob = trimesh.creation.icosphere(subdivisions=2 if sections >= 32 else 1, radius=0.07)
     knob.apply_translation([0, 0.66, 0])
     # Spout: a tapered tube leaning out of the body's side.
     spout_profile = np.array([[0.0, 0.0], [0.09, 0.0], [0.07, 0.2], [0.045, 0.42], [0.0, 0.42]])
-    spout = _y_up(trimesh.creation.revolve(spout_profile[::-1], sections=32))
+    spout = _y_up(trimesh.creation.revolve(spout_profile[::-1], sections=sections // 2))
     lean = trimesh.transformations.rotation_matrix(np.radians(-50), [0, 0, 1])
     spout.apply_transform(lean)
     spout.apply_translation([0.38, 0.18, 0])
-    handle = trimesh.creation.torus(0.17, 0.035, major_sections=32, minor_sections=12)
+    handle = trimesh.creation.torus(0.17, 0.035, major_sections=sections // 2, minor_sections=max(4, 12 * sections // 64))
     handle.apply_translation([-0.48, 0.32, 0])
     mesh = trimesh.util.concatenate([body, knob, spout, handle])
     mesh.apply_translation([0, -mesh.bounds[0, 1], 0])
