@@ -25,11 +25,11 @@ def test_fixtures_rest_on_the_ground(name):
 
 def test_teapot_size_class():
     assert 3000 < len(hj.scenes.teapot().faces) < 6000
-    coarse = hj.scenes.teapot(sections=12)  # the same shape in 308 faces, for fast soft-shadow tests
+    coarse = hj.scenes.teapot(12, rings=8, parts=6)  # the same shape in 308 faces, for fast tests
     assert len(coarse.faces) == 308 and coarse.is_watertight
     assert np.allclose(coarse.bounds, hj.scenes.teapot().bounds, atol=0.02)
-    with pytest.raises(ValueError, match="sections must be >= 8"):
-        hj.scenes.teapot(sections=4)
+    with pytest.raises(ValueError, match="must be >= 4, got 12, 8, 2"):
+        hj.scenes.teapot(12, rings=8, parts=2)
 
 
 def test_mura_pattern_is_balanced_with_flat_correlation():

@@ -17,10 +17,11 @@ from hiddenjax.transport._embree import RayCaster, primary_hits
 MM, DEG = 1e-3, np.radians(1.0)
 
 
-def _problem(sections):
-    """A teapot of `sections` (the soft model's cost is per triangle) at 16x16 pixels on a 4x8 grid, a sky
-    and the soft model (no culling slack)."""
-    setup = hj.scenes.object_on_plane(hj.scenes.teapot(sections=sections), width=16, height=16)
+def _problem(coarse):
+    """A teapot (`coarse`: 308 faces; the soft model's cost is per triangle) at 16x16 pixels on a 4x8 grid,
+    a sky and the soft model (no culling slack)."""
+    mesh = hj.scenes.teapot(12, rings=8, parts=6) if coarse else "teapot"
+    setup = hj.scenes.object_on_plane(mesh, width=16, height=16)
     grid = hj.EnvGrid(4, 8)
     model = SceneModel.from_scene(setup.scene, setup.camera, grid, margin=1, tolerance=1e-10)
     env = grid.downsample(hj.scenes.procedural_sky(32, 64, sun=(0.9, 2.0), sun_radiance=200.0))
@@ -31,13 +32,13 @@ def _problem(sections):
 @pytest.fixture(scope="module")
 def problem():
     """The algebra's checks: a coarse teapot (308 faces, 13x faster than the fixture's 4096)."""
-    return _problem(12)
+    return _problem(coarse=True)
 
 
 @pytest.fixture(scope="module")
 def teapot_problem():
     """Recovering the pose: the full teapot (at 16x16 pixels a coarse one's facets leave the shift unidentified)."""
-    return _problem(64)
+    return _problem(coarse=False)
 
 
 def _embree(setup, model, theta, samples=16):

@@ -14,29 +14,30 @@ def _y_up(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return mesh
 
 
-def teapot(sections: int = 64) -> trimesh.Trimesh:
-    """A teapot-like object (body, lid knob, spout, handle) of about 4.4k faces, 1 unit tall.
+def teapot(sections: int = 64, *, rings: int = 24, parts: int = 32) -> trimesh.Trimesh:
+    """A teapot-like object (body, lid knob, spout, handle) of about 4.1k faces, 1 unit tall.
 
-    `sections` (>= 8) sets the resolution: segments around the body; the profile, spout, handle
-    and knob follow it (`sections=12`: about 300 faces, the same shape, for fast tests).
+    `sections` segments around the body and `rings` along its profile; `parts` segments around
+    the spout and the handle (the handle's tube and the knob follow). `teapot(12, rings=8,
+    parts=6)`: the same shape in 308 faces, for fast soft-shadow tests.
     """
-    if sections < 8:
-        raise ValueError(f"sections must be >= 8, got {sections}")
+    if min(sections, rings, parts) < 4:
+        raise ValueError(f"sections, rings and parts must be >= 4, got {sections}, {rings}, {parts}")
     # Body profile (radius, height), closed at both poles so the revolved surface is capped.
-    t = np.linspace(0, 1, max(8, 24 * sections // 64))
+    t = np.linspace(0, 1, rings)
     height = 0.62 * t
     radius = 0.5 * np.sin(np.pi * (0.12 + 0.8 * t)) + 0.02
     radius[0] = radius[-1] = 0.0
     body = _y_up(trimesh.creation.revolve(np.stack([radius, height], -1)[::-1], sections=sections))
-    knob = trimesh.creation.icosphere(subdivisions=2 if sections >= 32 else 1, radius=0.07)
+    knob = trimesh.creation.icosphere(subdivisions=2 if parts >= 16 else 1, radius=0.07)
     knob.apply_translation([0, 0.66, 0])
     # Spout: a tapered tube leaning out of the body's side.
     spout_profile = np.array([[0.0, 0.0], [0.09, 0.0], [0.07, 0.2], [0.045, 0.42], [0.0, 0.42]])
-    spout = _y_up(trimesh.creation.revolve(spout_profile[::-1], sections=sections // 2))
+    spout = _y_up(trimesh.creation.revolve(spout_profile[::-1], sections=parts))
     lean = trimesh.transformations.rotation_matrix(np.radians(-50), [0, 0, 1])
     spout.apply_transform(lean)
     spout.apply_translation([0.38, 0.18, 0])
-    handle = trimesh.creation.torus(0.17, 0.035, major_sections=sections // 2, minor_sections=max(4, 12 * sections // 64))
+    handle = trimesh.creation.torus(0.17, 0.035, major_sections=parts, minor_sections=max(4, 12 * parts // 32))
     handle.apply_translation([-0.48, 0.32, 0])
     mesh = trimesh.util.concatenate([body, knob, spout, handle])
     mesh.apply_translation([0, -mesh.bounds[0, 1], 0])
