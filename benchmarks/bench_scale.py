@@ -115,7 +115,7 @@ def distributed(out: Path, extra, processes=1) -> dict:
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/bench_scale"))
-    parser.add_argument("--quick", action="store_true", help="a 64x64 photo, 16x32 and 32x64 grids")
+    parser.add_argument("--quick", action="store_true", help="a 64x64 photo, 8x16 and 16x32 grids")
     parser.add_argument("--memory", default="8GiB", help="the memory budget of every build and solve")
     parser.add_argument("--grids", default=None, help="comma-separated HxW grids (default 32x64 .. 256x512)")
     parser.add_argument("--skip", default="", help="comma-separated parts to leave out: layouts, dense")
@@ -128,7 +128,7 @@ def main(argv=None):
 
     import hiddenjax as hj
 
-    grids = [parse_grid(g) for g in (args.grids or ("16x32,32x64" if args.quick else
+    grids = [parse_grid(g) for g in (args.grids or ("8x16,16x32" if args.quick else
                                                      "32x64,64x128,128x256,256x512")).split(",")]
     size = 64 if args.quick else 256
     panorama = hj.io.read_image(PANORAMA)
