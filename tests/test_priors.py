@@ -23,9 +23,13 @@ def x64():
 
 
 def tv_brute_force(A, y, grid, lt, lr):
-    """`min ||Ax - y||^2 + lr |x|^2 + lt sum_i t_i` s.t. `t_i >= ||(K x)_i||`, `x >= 0`, by SLSQP (epigraph form)."""
+    """`min ||Ax - y||^2 + lr |x|^2 + lt sum_i t_i` s.t. `t_i >= ||(K x)_i||`, `x >= 0`, by SLSQP (epigraph form).
+
+    `K` as a dense `(N, 2, N)` array (the operator applied to unit vectors): SLSQP's finite differences
+    call it thousands of times."""
     N = grid.size
-    K = lambda x: np.asarray(tv_gradient(grid, jnp.asarray(x)))
+    Kd = np.moveaxis(np.asarray(jax.vmap(lambda e: tv_gradient(grid, e))(jnp.eye(N, dtype=jnp.float64))), 0, -1)
+    K = lambda x: Kd @ x  # (N, 2)
 
     def f(v):
         r = A @ v[:N] - y
