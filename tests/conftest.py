@@ -1,6 +1,18 @@
 import os
+import shutil
+from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# One compilation cache for the whole run (JAX's persistent cache, keyed by the program, the compile
+# options and the jax/jaxlib version): compiling is most of the suite's time on a CPU, and with it the
+# xdist workers, the scripts, the CLI runs and the pages they start compile each program once. It
+# lives in .pytest_cache, so a second run of the suite compiles almost nothing. Set by the environment
+# before jax is imported, the scripts and commands the tests start inherit it.
+OWN_CACHE = "JAX_COMPILATION_CACHE_DIR" not in os.environ  # a cache of the user's own is left as it is
+COMPILATION_CACHE = Path(os.environ.setdefault(
+    "JAX_COMPILATION_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax")))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.1")
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")
 
 import jax
 import numpy as np
@@ -10,6 +22,14 @@ import hiddenjax as hj
 from hiddenjax.transport._embree import RayCaster
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+
+def pytest_configure(config):
+    """The cache only grows (each code change adds programs): the run that starts the workers clears it past 1 GiB."""
+    if OWN_CACHE and not hasattr(config, "workerinput") and COMPILATION_CACHE.is_dir():
+        size = sum(f.stat().st_size for f in COMPILATION_CACHE.iterdir() if f.is_file())
+        if size > 1 << 30:
+            shutil.rmtree(COMPILATION_CACHE, ignore_errors=True)
 
 
 @pytest.fixture
