@@ -345,11 +345,11 @@ def test_culled_visibility_matches_dense_in_value_and_gradient(teapot_points):
     # the temperature is traced: one compilation of each sum serves both temperatures
     culled = jax.jit(lambda l, o, T: jnp.sum(jnp.exp(rec.scatter(sh.culled_log_visibility(rec, o, l, T)))))
     dense = jax.jit(lambda l, p, t, T: jnp.sum(sh.soft_visibility(p, t, l, T)))
+    with jax.enable_x64():
+        tri64, points64 = jnp.asarray(scene[1].triangles, jnp.float64), jnp.asarray(shadows.points, jnp.float64)
     for T in (100.0, 1000.0):
         v1, g1 = jax.value_and_grad(culled)(jnp.asarray(light, jnp.float32), occ, T)
         with jax.enable_x64():
-            tri64 = jnp.asarray(scene[1].triangles, jnp.float64)
-            points64 = jnp.asarray(shadows.points, jnp.float64)
             v0, g0 = jax.value_and_grad(dense)(jnp.asarray(light, jnp.float64), points64, tri64, T)
             v64 = culled(jnp.asarray(light, jnp.float64), sh.Occluder.from_triangles(tri64), T)  # float64 occluders run too
         np.testing.assert_allclose(v1, v0, rtol=1e-5)
