@@ -50,6 +50,11 @@ def plane_only(small_setup):
     return hj.Scene([small_setup.scene[0]]), small_setup.camera
 
 
+def coarse_teapot():
+    """The teapot's shape in 308 faces (the soft model's cost is per triangle), for fast soft-shadow tests."""
+    return hj.scenes.teapot(12, rings=8, parts=6)
+
+
 def relrmse(a, b):
     return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(np.asarray(b)))
 

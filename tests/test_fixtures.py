@@ -5,6 +5,7 @@ import pytest
 import trimesh
 
 import hiddenjax as hj
+from conftest import coarse_teapot
 
 FIXTURES = Path(__file__).resolve().parents[1] / "data_fixtures"
 
@@ -25,7 +26,7 @@ def test_fixtures_rest_on_the_ground(name):
 
 def test_teapot_size_class():
     assert 3000 < len(hj.scenes.teapot().faces) < 6000
-    coarse = hj.scenes.teapot(12, rings=8, parts=6)  # the same shape in 308 faces, for fast tests
+    coarse = coarse_teapot()  # the mesh of the fast soft-shadow tests
     assert len(coarse.faces) == 308 and coarse.is_watertight
     assert np.allclose(coarse.bounds, hj.scenes.teapot().bounds, atol=0.02)
     with pytest.raises(ValueError, match="must be >= 4, got 12, 8, 2"):

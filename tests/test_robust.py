@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import relrmse
+from conftest import coarse_teapot, relrmse
 
 import hiddenjax as hj
 from hiddenjax.solvers import SceneModel, SceneParams, SceneUncertainty
@@ -20,7 +20,7 @@ MM, DEG = 1e-3, np.radians(1.0)
 def _problem(coarse):
     """A teapot (`coarse`: 308 faces; the soft model's cost is per triangle) at 16x16 pixels on a 4x8 grid,
     a sky and the soft model (no culling slack)."""
-    mesh = hj.scenes.teapot(12, rings=8, parts=6) if coarse else "teapot"
+    mesh = coarse_teapot() if coarse else "teapot"
     setup = hj.scenes.object_on_plane(mesh, width=16, height=16)
     grid = hj.EnvGrid(4, 8)
     model = SceneModel.from_scene(setup.scene, setup.camera, grid, margin=1, tolerance=1e-10)

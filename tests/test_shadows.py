@@ -8,7 +8,7 @@ import trimesh
 from jax.test_util import check_grads
 
 import hiddenjax as hj
-from conftest import hard_on_the_same_samples, relrmse
+from conftest import coarse_teapot, hard_on_the_same_samples, relrmse
 from hiddenjax import shadows as sh
 from hiddenjax.transport._embree import RayCaster
 
@@ -468,7 +468,7 @@ def test_third_edge_removes_the_ghosts_of_two_hidden_lights(tmp_path):
 
 @pytest.fixture(scope="module")
 def soft_transport():
-    setup = hj.scenes.object_on_plane(hj.scenes.teapot(12, rings=8, parts=6), width=20, height=20)  # 308 faces
+    setup = hj.scenes.object_on_plane(coarse_teapot(), width=20, height=20)
     grid = hj.EnvGrid(8, 16)
     return setup, grid, sh.SoftTransport.from_scene(*setup, grid, samples=4, seed=0)
 
