@@ -62,6 +62,7 @@ def one(args):
                                   memory=args.memory)
         held = T.nbytes
     build = time.perf_counter() - t0
+    build_peak = peak_gib()
     t0 = time.perf_counter()
     sol = hj.solve_illumination(T, photo, throw=False)
     env = np.asarray(sol.env)
@@ -70,7 +71,7 @@ def one(args):
     exact = args.dense or hj.solvers._solve.fits_normal_matrix((T,))
     print(json.dumps(dict(grid=[h, w], dense=args.dense, exact_solve=bool(exact), pixels=int(T.shape[0]),
                           samples=samples, build_seconds=build, solve_seconds=solve, held_gib=held / 2**30,
-                          peak_gib=peak_gib(), kkt_residual=float(np.max(sol.kkt_residual)),
+                          build_peak_gib=build_peak, peak_gib=peak_gib(), kkt_residual=float(np.max(sol.kkt_residual)),
                           steps=int(np.max(sol.steps)))))
 
 
@@ -183,7 +184,8 @@ def main(argv=None):
         runs.append(run)
         print(f"{h}x{w} {'dense' if dense else 'operator':8s} build {run['build_seconds']:7.1f} s  solve "
               f"{run['solve_seconds']:7.1f} s ({'exact' if run['exact_solve'] else 'matrix-free'}, KKT "
-              f"{run['kkt_residual']:.1e})  held {run['held_gib']:.2f} GiB  peak {run['peak_gib']:.2f} GiB  "
+              f"{run['kkt_residual']:.1e})  held {run['held_gib']:.2f} GiB  peak {run['peak_gib']:.2f} GiB "
+              f"(build {run['build_peak_gib']:.2f})  "
               f"tone-mapped SSIM {run['ssim_tm']:.3f}  SSIM {run['ssim']:.3f}  relRMSE {run['relrmse']:.3f}  "
               f"sun {run['sun_error_deg']:.2f} deg, power x{run['sun_power_ratio']:.2f}", flush=True)
         save(runs=runs)

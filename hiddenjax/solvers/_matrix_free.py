@@ -209,7 +209,7 @@ class _Coarse:
         self.of = (i // fh) * coarse.width + j // fw
         self.count = fh * fw
         self.views = [_aggregate(t, self.grid) for t in Ts]
-        self.gram = sum(np.asarray(t.A, np.float64).T @ np.asarray(t.A, np.float64) for t in self.views)
+        self.gram = sum(_gram64(t.A) for t in self.views)
         first, second = grid.difference_pairs()
         self.first, self.second = self.of[first], self.of[second]
 
@@ -235,6 +235,16 @@ class _Coarse:
         sol = IlluminationOperator.build(self.views, prior=prior).solve(
             images[0] if len(self.views) == 1 else images, throw=False)
         return np.asarray(sol.env, np.float64).reshape((self.grid.size,) + c.shape[1:])[self.of]
+
+
+def _gram64(A, rows: int = 8192) -> np.ndarray:
+    """`A^T A` in float64, accumulated over row blocks: one float64 block at a time, never a float64 copy of `A`."""
+    A = np.asarray(A)
+    G = np.zeros((A.shape[1], A.shape[1]))
+    for a in range(0, A.shape[0], rows):
+        block = A[a : a + rows].astype(np.float64)
+        G += block.T @ block
+    return G
 
 
 def _aggregate(t, grid: EnvGrid) -> TransportMatrix:

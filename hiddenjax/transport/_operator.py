@@ -225,11 +225,12 @@ class TransportOperator(PixelRows):
         coarse = (i // fh) * grid.width + j // fw
         merge = sp.csr_matrix((np.ones(self.grid.size), (np.arange(self.grid.size), coarse)),
                               shape=(self.grid.size, grid.size))
-        A = np.asarray(self._W @ (merge.T @ self._Q.T).T, dtype=np.float64) if self._low_rank else np.zeros(
-            (P, grid.size))
+        # float32 from the start (the result's type): a float64 `P x N_coarse` would double the peak
+        A = np.asarray(self._W @ (merge.T @ self._Q.T).T, dtype=np.float32) if self._low_rank else np.zeros(
+            (P, grid.size), np.float32)
         for start, C in self._sparse_blocks():
             A[start : start + C.shape[0]] += (C @ merge).toarray()
-        return self._dense(jnp.asarray(A, dtype=jnp.float32), grid, self.samples * fh * fw)
+        return self._dense(jnp.asarray(A), grid, self.samples * fh * fw)
 
     def _dense(self, A, grid, samples) -> TransportMatrix:
         return TransportMatrix(A=A, albedo=self.albedo, pixels=self.pixels, grid=grid, image_shape=self.image_shape,
