@@ -227,7 +227,7 @@ def main(argv=None):
     size, grid = (48, hj.EnvGrid(8, 16)) if q else (128, hj.EnvGrid(32, 64))
     args.samples, args.pixel_samples = (8, 1) if q else (hj.transport.DEFAULT_SAMPLES, hj.transport.DEFAULT_PIXEL_SAMPLES)
     args.photo_samples, args.sky = (64, (64, 128)) if q else (512, (256, 512))
-    args.adam_seconds, args.chunk, args.joint_steps = (10.0, 50, 5) if q else (300.0, 200, 5)
+    args.adam_seconds, args.chunk, args.joint_steps = (3.0, 50, 5) if q else (300.0, 200, 5)
     setup = hj.scenes.object_on_plane("teapot", width=size, height=size)
 
     t0 = time.perf_counter()
