@@ -127,13 +127,13 @@ def test_usage_errors_exit_2_with_help_hint(built, capsys):
     proc = run("solve", "A.npz", cwd=built)  # the console command itself: its exit status and its stderr
     assert proc.returncode == 2 and "--help" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     # the rest in this process (argparse exits before any work: a child would only add its start-up)
-    with pytest.raises(SystemExit) as exit:
+    with pytest.raises(SystemExit) as stopped:
         main(["solve", "A.npz", "photo.exr", "-o", "env.exr", "--prior", "sparse"])
-    assert exit.value.code == 2 and "invalid choice: 'sparse'" in capsys.readouterr().err
+    assert stopped.value.code == 2 and "invalid choice: 'sparse'" in capsys.readouterr().err
     for command in ("transport", "solve", "render", "cues", "demo", "design"):
-        with pytest.raises(SystemExit) as exit:
+        with pytest.raises(SystemExit) as stopped:
             main([command, "--help"])
-        assert exit.value.code == 0 and "usage: hiddenjax " + command in capsys.readouterr().out
+        assert stopped.value.code == 0 and "usage: hiddenjax " + command in capsys.readouterr().out
 
 
 def test_inprocess_errors(built, capsys):
