@@ -10,7 +10,7 @@ import hiddenjax as hj
 from hiddenjax.solvers import L2Prior, SunSkyPrior, TVPrior
 from hiddenjax.solvers._tv import shrink, tv_divergence, tv_gradient
 
-from test_solvers import random_problem
+from test_solvers import random_problem, scipy_nnls
 
 # Random least-squares problems (images with negative values) exercise the solvers, not photos.
 pytestmark = pytest.mark.filterwarnings("ignore:the photo has negative radiance:UserWarning")
@@ -137,6 +137,11 @@ def test_bad_priors_and_weights_raise_one_clear_error(x64):
         L2Prior(reweight=-1)
     with pytest.raises(ValueError, match="floor"):
         L2Prior(reweight=2, floor=0.0)
+    for bad in (-0.1, np.nan, np.inf):
+        with pytest.raises(ValueError, match="threshold must be a finite fraction >= 0"):
+            L2Prior(threshold=bad)
+    with pytest.raises(ValueError, match="sky.threshold must be 0"):
+        SunSkyPrior(sky=L2Prior(threshold=0.02))
 
 
 def test_reweighting_assembles_the_weighted_laplacian_and_solves_each_image_alone(x64):
@@ -162,6 +167,39 @@ def test_reweighting_assembles_the_weighted_laplacian_and_solves_each_image_alon
     many = op.solve_many(stack)
     for k in range(2):
         assert np.allclose(many.env[k], op.solve(stack[k]).env, rtol=1e-9, atol=1e-12)
+
+
+def test_threshold_lowers_the_map_by_a_fraction_of_its_mean_and_solves_its_weighted_l1_program(x64):
+    """`threshold=t`: the linear term `2 t m (B_0 1)^T x` lowers an unclipped map by exactly `t m`; where
+    `x >= 0` clips, the map is the optimum of that program (scipy's NNLS on the completed squares)."""
+    T, A, image = random_problem(4)
+    rng = np.random.default_rng(5)
+    bright = (A @ (1.0 + rng.random(A.shape[1]))).reshape(image.shape)  # every cell far above 0
+    plain = hj.solve_illumination(T, bright, prior=L2Prior(smooth=0.01))
+    t = 0.1
+    lowered = hj.solve_illumination(T, bright, prior=L2Prior(smooth=0.01, threshold=t))
+    m = float(np.mean(plain.env))
+    assert float(np.min(lowered.env)) > 0  # nothing clipped: the closed form holds
+    assert np.allclose(lowered.env, np.asarray(plain.env) - t * m, rtol=0, atol=1e-9 * m)
+    # signed data: many cells clip; against NNLS on [A; sqrt(ls) D; sqrt(lr) I] with the linear term
+    # g = t m B_0 1 folded into the right-hand side (g = M^T z, z = M (M^T M)^-1 g)
+    y = np.abs(image).ravel()
+    prior = L2Prior(smooth=0.01, threshold=0.5)
+    sol = hj.solve_illumination(T, np.abs(image), prior=prior)
+    x0, M, b = scipy_nnls(A, y, T.grid, float(sol.smooth), float(sol.ridge))
+    g = prior.threshold * np.mean(x0) * (M.T @ M @ np.ones(T.grid.size))
+    z = M @ np.linalg.solve(M.T @ M, g)
+    x, _, _ = scipy_nnls(A, y, T.grid, float(sol.smooth), float(sol.ridge), b=b - z)
+    assert np.sum(x == 0) > 3  # the threshold clips cells
+    assert np.allclose(np.asarray(sol.env).ravel(), x, rtol=0, atol=1e-8 * np.max(x))
+    D = T.grid.difference_matrix(dense=True)
+    objective = np.sum((A @ x - y) ** 2) + float(sol.smooth) * np.sum((D @ x) ** 2) + float(sol.ridge) * x @ x
+    assert float(sol.objective) == pytest.approx(objective + 2 * g @ x, rel=1e-9)
+    assert float(sol.kkt_residual) < 1e-8
+    # the HDR-aware default carries a threshold too, and a signed solve is refused with the fix
+    assert hj.solvers.hdr_prior().threshold > 0
+    with pytest.raises(ValueError, match="needs x >= 0; solve a signed map with prior='l2'"):
+        hj.solve_illumination(T, image, prior=L2Prior(threshold=0.1), nonneg=False)
 
 
 # --- sun + sky on a rendered photo ------------------------------------------------------------

@@ -24,10 +24,11 @@ def random_problem(seed, P=60, grid=hj.EnvGrid(4, 8), dtype=jnp.float64):
     return T, A, image
 
 
-def scipy_nnls(A, y, grid, ls, lr):
+def scipy_nnls(A, y, grid, ls, lr, b=None):
+    """`argmin_{x >= 0} |M x - b|`, `M = [A; sqrt(ls) D; sqrt(lr) I]`, `b = [y; 0]` unless given: `(x, M, b)`."""
     D = grid.difference_matrix(dense=True)
     M = np.vstack([A, np.sqrt(ls) * D, np.sqrt(lr) * np.eye(grid.size)])
-    b = np.concatenate([y, np.zeros(D.shape[0] + grid.size)])
+    b = np.concatenate([y, np.zeros(D.shape[0] + grid.size)]) if b is None else b
     return scipy.optimize.nnls(M, b, maxiter=20 * grid.size)[0], M, b
 
 

@@ -139,7 +139,8 @@ class Objective(eqx.Module):
         The default solve's steps, each non-negative solve done by the solver's projected Newton
         (values to its tolerance) and differentiated on its free cells (see the module's doc):
         `x_0` with `R = s (ls D^T D + lr I)`, then `reweight` times `W = W(x_k)` (eq. of
-        `L2Prior`), `x_k+1` with `R_W = s (ls D^T W D + lr I)`; `s = mean(diag(A^T A))` (weights
+        `L2Prior`), `x_k+1` with `R_W = s (ls D^T W D + lr I)`, from `c = A^T y` lowered by the
+        prior's threshold after `x_0` (`c - t mean(x_0) B_0 1`); `s = mean(diag(A^T A))` (weights
         relative, grids up to 32x64).
         """
         N = A.shape[1]
@@ -153,7 +154,12 @@ class Objective(eqx.Module):
         maps = []
         for x in self.skies:  # a few skies: unrolled
             c = A.T @ (A @ x)
-            x_k = _nonneg_solve(gram + prior(jnp.ones(edges, A.dtype)), c)
+            B0 = gram + prior(jnp.ones(edges, A.dtype))
+            x_k = _nonneg_solve(B0, c)
+            if self.prior.thresholds():
+                c = self.prior.thresholded(B0, c, x_k)
+                if not self.prior.reweight:
+                    x_k = _nonneg_solve(B0, c)
             for _ in range(self.prior.reweight):
                 x_k = _nonneg_solve(gram + prior(log_domain_weights(self.grid, x_k, self.prior.floor)), c)
             maps.append(x_k)

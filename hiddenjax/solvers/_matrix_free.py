@@ -81,31 +81,46 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
 
     coarse_grid = _coarse_grid(grid, settings.coarse)
     coarse = None if coarse_grid is None else _Coarse(Ts, coarse_grid, ls, lr)
+    # The threshold's term (L2Prior) needs the mean of the thesis' map: the first stage's map, the
+    # coarse grid's (from a coarse start) or the starting map's (from `init`).
+    plain = None
     if init is not None:
         x = _as_start(grid, init, c)
+        plain = np.mean(x, axis=0, keepdims=True)
     elif coarse is not None:
         x = coarse.start(ys, prior, c)
+        if prior.thresholds():
+            thesis = L2Prior(smooth=prior.smooth, ridge=prior.ridge, absolute=prior.absolute)
+            plain = np.mean(coarse.start(ys, thesis, c), axis=0, keepdims=True)
     else:
         x = np.zeros_like(c)
     # From a coarse start the prior's reweightings are done on the coarse grid: the fine grid
     # takes its weights from that map and reweights once more from its own.
     started = init is not None or coarse is not None
     stages = (min(prior.reweight, 1) if started else prior.reweight) + 1
+    stages += int(prior.thresholds() and not started and not prior.reweight)  # the plain solve, then the thresholded
     w = np.ones(len(first))
+    c_t = c
     steps_total, kkt = 0, np.inf
     for stage in range(stages):
+        if prior.thresholds() and plain is not None and c_t is c:
+            ones = hessian(np.ones(grid.size), np.ones(len(first)))  # B_0 1
+            c_t = c - prior.threshold * plain * ones.reshape((-1,) + (1,) * (c.ndim - 1))
         if prior.reweight and (stage or started):
             w = np.asarray(log_domain_weights(grid, jnp.asarray(x), prior.floor), np.float64)
         metric = energy + ls * (np.bincount(first, w, grid.size) + np.bincount(second, w, grid.size)) + lr
         metric = np.maximum(metric, 1e-30 * metric.max())
         precondition = _jacobi(metric, c.ndim) if coarse is None else coarse.preconditioner(w, metric, c.ndim)
-        x, steps, products, kkt = _newton_cg(lambda v: hessian(v, w), c, precondition, x, settings)
+        x, steps, products, kkt = _newton_cg(lambda v: hessian(v, w), c_t, precondition, x, settings)
         steps_total += steps
-    grad = hessian(x, w) - c
+        if plain is None:
+            plain = np.mean(x, axis=0, keepdims=True)
+    grad = hessian(x, w) - c_t
     kkt = np.max(np.abs(np.minimum(x, grad)), axis=0) / np.maximum(np.max(np.abs(c), axis=0), 1e-30)
     result = np.where(kkt <= settings.rtol, SUCCESS, MAX_STEPS)
     residual = sum(np.sum((np.asarray(matvec(t, x), np.float64) - y) ** 2, axis=0) for t, y in zip(Ts, ys))
     objective = residual + ls * np.sum(x * laplacian(x, w), axis=0) + lr * np.sum(x * x, axis=0)
+    objective = objective + 2 * np.sum((c - c_t) * x, axis=0)  # the threshold's linear term
     if throw and np.any(result != SUCCESS):
         raise RuntimeError(f"the matrix-free solve stopped at KKT residual {np.max(kkt):.2e} after {steps_total} "
                            f"steps, above rtol={settings.rtol}: raise MatrixFree(max_steps=...), or pass throw=False")

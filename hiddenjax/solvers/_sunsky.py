@@ -71,6 +71,9 @@ class SunSkyPrior(Prior):
     def __check_init__(self):
         if not isinstance(self.sky, L2Prior):
             raise ValueError(f"sky must be an L2Prior, got {type(self.sky).__name__}")
+        if self.sky.thresholds():
+            raise ValueError(f"sky.threshold must be 0 for prior='sunsky' (got {self.sky.threshold}): its compact "
+                             "sources, not a threshold, keep the dim sky apart from the bright light")
         if self.max_sources < 0:
             raise ValueError(f"max_sources must be >= 0, got {self.max_sources}")
 
@@ -87,7 +90,7 @@ class SunSkyPrior(Prior):
         solver = ProjectedNewton() if solver is None else solver
         columns = c if c.ndim == 2 else c[:, None]
         grid = op.views[0].grid
-        B, factor, R = self.sky.reweighted(op, columns, True, solver)  # the sky's prior, HDR-aware if asked
+        B, factor, R, _ = self.sky.reweighted(op, columns, True, solver)  # the sky's prior, HDR-aware if asked
         yy = sum(jnp.sum(y * y, 0) for y in ys).reshape(-1)
         xs, ss, angles_k, active_k, rss_k, steps, result_k = _sunsky(B, factor, R, op.ridge, grid, columns, yy, self, solver)
         # BIC over the effective number of independent residuals, from the sky-only fit's residual image
