@@ -73,6 +73,18 @@ def test_float32_cues_survive_an_ill_conditioned_normal_matrix(method):
     np.testing.assert_allclose(np.asarray(cues.uncertainty()).ravel(), np.sqrt(np.diag(Binv)), rtol=1e-4)
 
 
+def test_a_failed_shifted_cholesky_falls_back_to_qr_with_a_warning(scene_T, monkeypatch):
+    """A capture's transport (8337 x 2048, float32, one dominant direction) once left the formed
+    A^T A with an eigenvalue of -1.4e-6 against the shift's 1.1e-6: the factor came out NaN. Then
+    the cues come from the QR factorization, with a warning, rather than an error."""
+    from hiddenjax.cues import _linear
+    qr = hj.cues.LinearCues.build(scene_T, method="qr")
+    monkeypatch.setattr(_linear, "_refined_inverse_factor", lambda A, *args: jnp.full((A.shape[1],) * 2, jnp.nan, A.dtype))
+    with pytest.warns(UserWarning, match="uses? the QR factorization instead"):
+        cues = hj.cues.LinearCues.build(scene_T)
+    np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-12)
+
+
 def test_leverage_under_jit_matches_eager(scene_T):
     with jax.enable_x64():
         eager = hj.cues.leverage(scene_T)

@@ -14,6 +14,8 @@ leverage, Cook's distance and uncertainty); gain images default to the solver's 
 that they are the operator `solve_illumination(..., nonneg=False)` applies.
 """
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -77,7 +79,13 @@ class LinearCues(eqx.Module):
         if method == "cholesky":
             inverse = _refined_inverse_factor(A, grid, ls if with_smooth else None, lr, chunk,
                                               _passes(A.dtype, ridge, absolute))
-        else:
+            if not isinstance(inverse, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(inverse))):
+                # the shift (from the mean of diag(A^T A)) fell short of the rounding of the formed
+                # A^T A, which scales with its largest eigenvalue: a strongly correlated A
+                warnings.warn("the shifted Cholesky factor of the formed A^T A failed in "
+                              f"{jnp.dtype(A.dtype).name}; the cues use the QR factorization instead", stacklevel=2)
+                method = "qr"
+        if method == "qr":
             R = jnp.sqrt(lr) * eye  # the prior rows' R factor, exact for the ridge alone
             if with_smooth:
                 D = jax.vmap(grid.difference, out_axes=1)(eye)  # ((2H-1)W, N)
