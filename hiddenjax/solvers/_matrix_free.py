@@ -88,10 +88,7 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
         x = _as_start(grid, init, c)
         plain = np.mean(x, axis=0, keepdims=True)
     elif coarse is not None:
-        x = coarse.start(ys, prior, c)
-        if prior.thresholds():
-            thesis = L2Prior(smooth=prior.smooth, ridge=prior.ridge, absolute=prior.absolute)
-            plain = np.mean(coarse.start(ys, thesis, c), axis=0, keepdims=True)
+        x, plain = coarse.start(ys, prior, c)
     else:
         x = np.zeros_like(c)
     # From a coarse start the prior's reweightings are done on the coarse grid: the fine grid
@@ -245,11 +242,18 @@ class _Coarse:
         return lambda r, free: free * scipy.linalg.cho_solve(factor, self.restrict(free * r))[self.of] + inv * r
 
     def start(self, ys, prior, c):
-        """The exact solve of the coarse problem (the prior's own reweightings included), spread over the fine cells."""
+        """`(x, m)`: the exact solve of the coarse problem (the prior's own reweightings included),
+        spread over the fine cells, and with a threshold the mean of the thesis' coarse map (else None)."""
         images = [t.rows_to_image(jnp.asarray(y, jnp.float32)) for t, y in zip(self.views, ys)]
-        sol = IlluminationOperator.build(self.views, prior=prior).solve(
-            images[0] if len(self.views) == 1 else images, throw=False)
-        return np.asarray(sol.env, np.float64).reshape((self.grid.size,) + c.shape[1:])[self.of]
+        images = images[0] if len(self.views) == 1 else images
+        op = IlluminationOperator.build(self.views, prior=prior)
+        spread = lambda sol: np.asarray(sol.env, np.float64).reshape((self.grid.size,) + c.shape[1:])[self.of]
+        plain = None
+        if prior.thresholds():  # the same normal matrix: the thesis' prior with the same weights
+            thesis = L2Prior(smooth=prior.smooth, ridge=prior.ridge, absolute=prior.absolute)
+            plain = np.mean(spread(eqx.tree_at(lambda o: o.prior, op, thesis).solve(images, throw=False)),
+                            axis=0, keepdims=True)
+        return spread(op.solve(images, throw=False)), plain
 
 
 def _gram64(A, rows: int = 8192) -> np.ndarray:
