@@ -78,11 +78,12 @@ def test_a_failed_shifted_cholesky_falls_back_to_qr_with_a_warning(scene_T, monk
     A^T A with an eigenvalue of -1.4e-6 against the shift's 1.1e-6: the factor came out NaN. Then
     the cues come from the QR factorization, with a warning, rather than an error."""
     from hiddenjax.cues import _linear
-    qr = hj.cues.LinearCues.build(scene_T, method="qr")
-    monkeypatch.setattr(_linear, "_refined_inverse_factor", lambda A, *args: jnp.full((A.shape[1],) * 2, jnp.nan, A.dtype))
-    with pytest.warns(UserWarning, match="uses? the QR factorization instead"):
-        cues = hj.cues.LinearCues.build(scene_T)
-    np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-12)
+    with jax.enable_x64():
+        qr = hj.cues.LinearCues.build(scene_T, method="qr")
+        monkeypatch.setattr(_linear, "_refined_inverse_factor", lambda A, *args: jnp.full((A.shape[1],) * 2, jnp.nan))
+        with pytest.warns(UserWarning, match="the cues use the QR factorization instead"):
+            cues = hj.cues.LinearCues.build(scene_T)
+        np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-12)
 
 
 def test_leverage_under_jit_matches_eager(scene_T):

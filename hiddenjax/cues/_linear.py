@@ -82,16 +82,17 @@ class LinearCues(eqx.Module):
             if not isinstance(inverse, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(inverse))):
                 # the shift (from the mean of diag(A^T A)) fell short of the rounding of the formed
                 # A^T A, which scales with its largest eigenvalue: a strongly correlated A
-                warnings.warn("the shifted Cholesky factor of the formed A^T A failed in "
-                              f"{jnp.dtype(A.dtype).name}; the cues use the QR factorization instead", stacklevel=2)
-                method = "qr"
-        if method == "qr":
+                method = "fallback"
+        if method in ("qr", "fallback"):
             R = jnp.sqrt(lr) * eye  # the prior rows' R factor, exact for the ridge alone
             if with_smooth:
                 D = jax.vmap(grid.difference, out_axes=1)(eye)  # ((2H-1)W, N)
                 R = jnp.linalg.qr(jnp.concatenate([jnp.sqrt(ls) * D, R]), mode="r")
             R = _chunked_qr(A, R, qr_chunk)
             inverse = jax.scipy.linalg.solve_triangular(R, eye, lower=False).T  # L^-1 with L = R^T
+        if method == "fallback" and bool(jnp.all(jnp.isfinite(inverse))):
+            warnings.warn("the shifted Cholesky factor of the formed A^T A failed in "
+                          f"{jnp.dtype(A.dtype).name}; the cues use the QR factorization instead", stacklevel=2)
         inverse = eqx.error_if(inverse, ~jnp.all(jnp.isfinite(inverse)),
                                "A^T A + R is singular (a direction no pixel sees, and zero weights): "
                                "use ridge > 0")
