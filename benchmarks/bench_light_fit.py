@@ -8,7 +8,7 @@ box filter) of the fixtures on a table at 128x128 pixels, each under one isotrop
 photos fall back to Embree hard-shadow renders plus a constant ambient (reported in
 `results.json` as `photos`). Fits: `hj.shadows.fit_lights` from a start 5 cm and 30 cm off (a
 random direction) and with no start at all (`init=None`: the global search in the default box),
-each with the ambient term. Baseline in the same run: one Embree hard-shadow render of the same
+each with the ambient term and the final polish (box-filtered Embree shadows plus one bounce). Baseline in the same run: one Embree hard-shadow render of the same
 image (`hj.render_point_lights`).
 """
 

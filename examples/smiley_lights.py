@@ -72,7 +72,7 @@ def main(argv=None):
     shadows = sh.ShadowScene.from_scene(scene, camera)
     fit = sh.fit_lights(image, scene, camera, init, steps=steps, rounds=max(1, steps // 10),
                         temperature=(30.0, 300.0), method="gd", learning_rate=1.0, shadows=shadows,
-                        search=False, ambient=False)  # the thesis' experiment: plain descent from the grid
+                        search=False, ambient=False, polish=False)  # the thesis' experiment: plain descent from the grid
     model = np.asarray(sh.render_lights(shadows, fit.positions, fit.intensities, temperature=300.0))
     mask = np.asarray(shadows.rows_to_image(np.ones(len(shadows.pixels), np.float32))) > 0
     observed = np.where(mask, image, np.nan)

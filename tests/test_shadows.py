@@ -581,3 +581,32 @@ def test_search_scores_candidates_by_the_exact_hard_shadow_image(lit_sphere):
     intensities, a, loss = hard_fit(photo, setup.scene, shadows, light)
     assert loss < 0.01 and abs(intensities[0] / 0.05 - 1) < 0.05 and abs(a / ambient - 1) < 0.3
     assert hard_fit(photo, setup.scene, shadows, light + [[0.1, 0.0, 0.0]])[2] > 5 * loss
+
+
+def test_polish_moves_a_light_onto_the_box_filtered_shadow():
+    """Nelder-Mead on box-filtered Embree shadows (the photo: Embree's render with 16 other footprint
+    samples plus an ambient, no bounce) takes a start 1.5 cm off to a few millimetres, along the valley
+    where a farther, brighter light casts almost the same shadow; from the truth it stays within 2 mm.
+    Measured at 48x48: 4.2 mm and 1.3 mm, loss 0.08x the start's, intensity +2.5%, ambient -7%."""
+    setup = hj.scenes.object_on_plane("sphere", width=48, height=48)
+    light = np.array([[0.12, 0.35, 0.08]])
+    photo = hj.render_point_lights(setup.scene, setup.camera, light, [0.05], pixel_samples=16, seed=5)
+    ambient = 0.1 * float(photo.mean())
+    photo = photo + ambient
+    start = light + [[0.009, -0.006, 0.010]]
+    out = sh.polish_lights(photo, setup.scene, setup.camera, start, bounce=False)
+    assert np.linalg.norm(out.positions - light) < 0.006, out.positions - light
+    assert out.loss < 0.2 * out.start_loss and 0 < out.evaluations <= 300 + 1
+    assert abs(out.intensities[0] / 0.05 - 1) < 0.05 and abs(out.ambient / ambient - 1) < 0.3
+    still = sh.polish_lights(photo, setup.scene, setup.camera, light, bounce=False)
+    assert np.linalg.norm(still.positions - light) < 0.002 and still.loss <= still.start_loss
+    with pytest.raises(ValueError, match="positions must be"):
+        sh.polish_lights(photo, setup.scene, setup.camera, [0.0, 1.0])
+    with pytest.raises(ValueError, match="pixel_samples must be"):
+        sh.polish_lights(photo, setup.scene, setup.camera, light, pixel_samples=0)
+    with pytest.raises(ValueError, match="step and tolerance"):
+        sh.polish_lights(photo, setup.scene, setup.camera, light, step=-0.01)
+    with pytest.raises(ValueError, match="does not match the camera"):
+        sh.polish_lights(photo[:10], setup.scene, setup.camera, light)
+    with pytest.raises(ValueError, match="black"):
+        sh.polish_lights(0 * photo, setup.scene, setup.camera, light)

@@ -31,6 +31,8 @@ from ._visibility import shadow_volume_planes as shadow_volume_planes
 from ._visibility import soft_visibility as soft_visibility
 from ._fit import LightFit as LightFit
 from ._fit import fit_lights as fit_lights
+from ._polish import LightPolish as LightPolish
+from ._polish import polish_lights as polish_lights
 from ._search import LightSearch as LightSearch
 from ._search import default_box as default_box
 from ._search import search_lights as search_lights

@@ -61,6 +61,20 @@ def default_box(scene: Scene) -> np.ndarray:
                      [centre[0] + 4 * size, hi[1] + 6 * size, centre[2] + 4 * size]])
 
 
+def direct_images(caster: RayCaster, x, n, rho, p) -> np.ndarray:
+    """`rho/pi max(0, n.w) / d^2 V(x, p)` per point `x (N, 3)` (normals `n`, albedo `rho`) for a unit
+    light at `p`, `(3,)` or one per point `(N, 3)` (eq. 4.11 with Embree's hard visibility)."""
+    v = np.asarray(p, np.float64) - x
+    d = np.linalg.norm(v, axis=-1)
+    w = v / np.maximum(d, 1e-300)[:, None]
+    cos = np.sum(n * w, axis=-1)
+    lit = np.nonzero((cos > 0) & (d > 0))[0]
+    visible = lit[~caster.occluded_within(x[lit], w[lit], d[lit])]
+    out = np.zeros(len(x))
+    out[visible] = rho[visible] / np.pi * cos[visible] / d[visible] ** 2
+    return out
+
+
 def _unit_images(caster: RayCaster, shadows: ShadowScene, positions: np.ndarray, batch: int = 16) -> np.ndarray:
     """`(C, P)`: the hard-shadow direct image at the fitted pixels of a unit light at each position.
 
@@ -72,15 +86,9 @@ def _unit_images(caster: RayCaster, shadows: ShadowScene, positions: np.ndarray,
     out = np.zeros((len(positions), len(x)))
     for start in range(0, len(positions), batch):
         p = positions[start:start + batch]
-        v = p[:, None, :] - x[None]  # (B, P, 3)
-        d = np.linalg.norm(v, axis=-1)
-        w = v / np.maximum(d, 1e-300)[..., None]
-        cos = np.sum(n[None] * w, axis=-1)
-        lit = np.nonzero((cos > 0) & (d > 0))
-        visible = ~caster.occluded_within(np.broadcast_to(x[None], v.shape)[lit], w[lit], d[lit])
-        shade = np.zeros(d.shape)
-        shade[lit] = np.where(visible, albedo[lit[1]] / np.pi * cos[lit] / d[lit] ** 2, 0.0)
-        out[start:start + batch] = shade
+        tile = lambda a: np.tile(a, (len(p),) + (1,) * (a.ndim - 1))
+        out[start:start + batch] = direct_images(caster, tile(x), tile(n), tile(albedo),
+                                                 np.repeat(p, len(x), axis=0)).reshape(len(p), len(x))
     return out
 
 
