@@ -23,6 +23,7 @@ import numpy as np
 import scipy.optimize
 
 from ..scene import Camera, Scene
+from ..scene._sampling import cosine_directions
 from ..transport._build import _observed_pixels
 from ..transport._embree import RayCaster, primary_hits
 from ._search import _fit, direct_images
@@ -63,15 +64,8 @@ class _Footprints:
 
     def bounce(self, p, rays: int, seed: int) -> np.ndarray:
         """`(P,)` one diffuse bounce of a unit light at `p`: `rays` cosine-distributed rays per point."""
-        rng = np.random.default_rng(seed)
         n, x = np.repeat(self.n, rays, axis=0), np.repeat(self.x, rays, axis=0)
-        u1, u2 = rng.random(len(n)), rng.random(len(n))
-        helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-        t = np.cross(n, helper)
-        t /= np.linalg.norm(t, axis=1, keepdims=True)
-        b = np.cross(n, t)
-        r, phi = np.sqrt(u1)[:, None], 2 * np.pi * u2[:, None]
-        w = r * np.cos(phi) * t + r * np.sin(phi) * b + np.sqrt(1 - u1)[:, None] * n
+        w = cosine_directions(n, np.random.default_rng(seed))
         hits = self.caster.intersect(x, w)
         radiance = np.zeros(len(x))
         h = np.nonzero(hits.surface >= 0)[0]
@@ -126,7 +120,8 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
 
     extra = [feet.bounce(p, bounce_rays, seed + 1 + k) if bounce else 0.0 for k, p in enumerate(start)]
     chosen = start.copy()
-    columns = np.stack([feet.direct(p) + extra[k] for k, p in enumerate(chosen)], axis=1)
+    start_columns = np.stack([feet.direct(p) + extra[k] for k, p in enumerate(chosen)], axis=1)
+    columns = start_columns.copy()
     start_loss = _fit(columns, y, ambient)[2] / norm
     evaluations = len(chosen)
     for _ in range(sweeps):
@@ -148,5 +143,5 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
     intensities, a, rss = _fit(columns, y, ambient)
     if rss / norm > start_loss:  # Nelder-Mead keeps its best vertex, so this guards rounding only
         chosen = start
-        intensities, a, rss = _fit(np.stack([feet.direct(p) + extra[k] for k, p in enumerate(start)], 1), y, ambient)
+        intensities, a, rss = _fit(start_columns, y, ambient)
     return LightPolish(chosen, intensities, a, rss / norm, start_loss, evaluations)
