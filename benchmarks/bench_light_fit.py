@@ -8,8 +8,9 @@ box filter) of the fixtures on a table at 128x128 pixels, each under one isotrop
 photos fall back to Embree hard-shadow renders plus a constant ambient (reported in
 `results.json` as `photos`). Fits: `hj.shadows.fit_lights` from a start 5 cm and 30 cm off (a
 random direction) and with no start at all (`init=None`: the global search in the default box),
-each with the ambient term and the final polish (box-filtered Embree shadows plus one bounce). Baseline in the same run: one Embree hard-shadow render of the same
-image (`hj.render_point_lights`).
+with their defaults: the ambient term, the search, then the polish (box-filtered Embree shadows
+plus one bounce; joint Levenberg-Marquardt, then Nelder-Mead). Baseline in the same run: one
+Embree hard-shadow render of the same image (`hj.render_point_lights`).
 """
 
 import argparse
@@ -94,7 +95,7 @@ def main(argv=None):
                     d = rng.normal(size=3)
                     init = light[None] + start * d / np.linalg.norm(d)
                 t = time.perf_counter()
-                fit = hj.shadows.fit_lights(photo, scene, cam, init, steps=12)
+                fit = hj.shadows.fit_lights(photo, scene, cam, init)
                 seconds = time.perf_counter() - t
                 err = float(np.linalg.norm(fit.positions[0] - light))
                 label = "none" if start is None else f"{100 * start:.0f} cm off"
@@ -109,7 +110,7 @@ def main(argv=None):
         for start in (0.30, None):
             init = None if start is None else LIGHTS + start * rng.normal(size=(3, 3)) / np.sqrt(3)
             t = time.perf_counter()
-            fit = hj.shadows.fit_lights(photo, scene, cam, init, steps=12, count=3)
+            fit = hj.shadows.fit_lights(photo, scene, cam, init, count=3)
             seconds = time.perf_counter() - t
             err = _error(fit.positions, LIGHTS)
             results.setdefault("multi", [])

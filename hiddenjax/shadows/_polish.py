@@ -12,9 +12,19 @@ pixel is `S` stratified footprint points and the image of a unit light at `p` is
 `rho/(S K) sum_{s,k} L_1(z_sk)` over `K` cosine-distributed rays from each footprint point to the
 surfaces `z` they hit, each lit directly by the unit light (`L_1 = rho_z/pi cos_z / d_z^2 V`). The
 bounce moves slowly with the light, so it is computed once at the starting positions.
-Intensities and an ambient constant are fitted in closed form (non-negative least squares),
-and each light's position moves by Nelder-Mead on `|y - sum_l I_l h_l - a|^2` with the others held.
-No gradient is needed: a candidate costs `S` shadow rays per pixel.
+Intensities and an ambient constant are fitted in closed form (non-negative least squares), so
+the loss is a function of the positions alone (variable projection),
+
+    f(p) = min_{I >= 0, a} |y - sum_l I_l h_{p_l} - a|^2 / |y|^2.
+
+Two stages minimize it, neither with an analytic gradient (a candidate costs `S` shadow rays per
+pixel). First, Levenberg-Marquardt on all the positions together, with the Jacobian of the
+residual by central differences of `delta` metres (Kaufman's variable-projection Jacobian
+`J = -(1 - P_A) [I_l dh_l/dp_l]`, `P_A` the projection onto the fitted columns and the constant):
+several lights' valleys are coupled (moving one light along its ray is paid for by another's
+intensity), which moving one light at a time cannot follow. Then Nelder-Mead moves each light
+with the others held, which steps over the small-scale roughness that the finite footprint
+samples leave in the loss.
 """
 
 from typing import NamedTuple
@@ -26,7 +36,7 @@ from ..scene import Camera, Scene
 from ..scene._sampling import cosine_directions
 from ..transport._build import _observed_pixels
 from ..transport._embree import RayCaster, primary_hits
-from ._search import _fit, direct_images
+from ._search import _fit, check_outside, direct_images
 
 
 class LightPolish(NamedTuple):
@@ -75,9 +85,47 @@ class _Footprints:
         return (np.repeat(self.rho, rays) * radiance).reshape(-1, self.S * rays).mean(axis=1)
 
 
+def _levenberg_marquardt(column, chosen, y, ambient: bool, delta: float, tolerance: float, iterations: int):
+    """Joint steps on every light's position: `column(j, p) (P,)` is light `j`'s unit image at `p`.
+
+    Returns `(positions, columns, evaluations)`; a step is taken only where it lowers the loss.
+    """
+    chosen, L, ones = np.array(chosen, dtype=np.float64), len(chosen), np.ones((len(y), 1))
+    columns = np.stack([column(j, p) for j, p in enumerate(chosen)], axis=1)
+    intensities, a, rss = _fit(columns, y, ambient)
+    damping, evaluations = 1e-3, 0
+    for _ in range(iterations):
+        D = np.empty((len(y), 3 * L))
+        for j in range(L):
+            for k in range(3):
+                e = np.zeros(3)
+                e[k] = delta
+                D[:, 3 * j + k] = intensities[j] * (column(j, chosen[j] + e) - column(j, chosen[j] - e)) / (2 * delta)
+        evaluations += 6 * L
+        A = np.concatenate([columns, ones], axis=1) if ambient else columns
+        r = y - A @ (np.append(intensities, a) if ambient else intensities)
+        J = D - A @ np.linalg.lstsq(A, D, rcond=None)[0]  # the intensities and ambient refit: projected out
+        M, g = J.T @ J, J.T @ r
+        while damping < 1e4:
+            step = np.linalg.solve(M + damping * np.diag(np.diag(M) + 1e-30), g).reshape(L, 3)
+            trial = chosen + step
+            trial_columns = np.stack([column(j, p) for j, p in enumerate(trial)], axis=1)
+            evaluations += L
+            fitted = _fit(trial_columns, y, ambient)
+            if fitted[2] < rss:
+                chosen, columns, (intensities, a, rss) = trial, trial_columns, fitted
+                damping = max(damping / 3, 1e-6)
+                break
+            damping *= 4
+        if damping >= 1e4 or np.max(np.abs(step)) < tolerance:
+            break
+    return chosen, columns, evaluations
+
+
 def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_samples: int = 9, bounce: bool = True,
-                  bounce_rays: int = 8, step: float = 0.005, tolerance: float = 2e-4, sweeps: int | None = None,
-                  max_evaluations: int = 300, ambient: bool = True, mask=None, seed: int = 0) -> LightPolish:
+                  bounce_rays: int = 8, step: float = 0.005, tolerance: float = 2e-4, sweeps: int = 1,
+                  max_evaluations: int = 300, delta: float = 0.008, iterations: int = 15, ambient: bool = True,
+                  mask=None, seed: int = 0) -> LightPolish:
     """Refine light positions against box-filtered Embree shadows plus one bounce (no gradient).
 
     **Arguments:**
@@ -88,9 +136,12 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
     - `pixel_samples`: stratified footprint points per pixel (the box filter).
     - `bounce`: add one diffuse bounce of each light (computed at the start) to its image.
     - `bounce_rays`: rays per footprint point for the bounce.
-    - `step`: the initial simplex size, metres; `tolerance`: Nelder-Mead's position tolerance, metres.
-    - `sweeps`: passes over the lights (each light in turn, the others held; default 1 for one
-      light, 2 for several).
+    - `delta`: the finite-difference step of the joint Levenberg-Marquardt stage, metres (a few
+      millimetres: wide enough to average over footprint samples); `iterations`: its most steps
+      (0 skips it).
+    - `step`: Nelder-Mead's initial simplex size, metres; `tolerance`: the position tolerance of
+      both stages, metres.
+    - `sweeps`: Nelder-Mead's passes over the lights (each light in turn, the others held).
     - `max_evaluations`: per light and sweep.
     - `ambient`: fit a constant radiance beside the lights.
 
@@ -99,13 +150,14 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
     start = np.atleast_2d(np.asarray(positions, np.float64))
     if start.ndim != 2 or start.shape[1] != 3 or not np.all(np.isfinite(start)):
         raise ValueError(f"positions must be finite light positions (L, 3), got shape {start.shape}")
-    sweeps = (1 if len(start) == 1 else 2) if sweeps is None else sweeps
-    for name, value in (("pixel_samples", pixel_samples), ("bounce_rays", bounce_rays), ("sweeps", sweeps),
-                        ("max_evaluations", max_evaluations)):
-        if not isinstance(value, (int, np.integer)) or value < 1:
-            raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    if not (np.isfinite(step) and step > 0 and np.isfinite(tolerance) and tolerance > 0):
-        raise ValueError(f"step and tolerance must be positive distances in metres, got {step}, {tolerance}")
+    check_outside(scene, start)
+    for name, value, least in (("pixel_samples", pixel_samples, 1), ("bounce_rays", bounce_rays, 1),
+                               ("sweeps", sweeps, 0), ("max_evaluations", max_evaluations, 1),
+                               ("iterations", iterations, 0)):
+        if not isinstance(value, (int, np.integer)) or value < least:
+            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+    if not all(np.isfinite(v) and v > 0 for v in (step, tolerance, delta)):
+        raise ValueError(f"step, tolerance and delta must be positive distances in metres, got {step}, {tolerance}, {delta}")
     image = np.asarray(image, np.float64)
     if image.shape[:2] != (camera.height, camera.width) or image.ndim not in (2, 3):
         raise ValueError(f"image shape {image.shape} does not match the camera {(camera.height, camera.width)}")
@@ -119,11 +171,11 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
         raise ValueError("the image is black over the fitted pixels: there is nothing to fit")
 
     extra = [feet.bounce(p, bounce_rays, seed + 1 + k) if bounce else 0.0 for k, p in enumerate(start)]
-    chosen = start.copy()
-    start_columns = np.stack([feet.direct(p) + extra[k] for k, p in enumerate(chosen)], axis=1)
-    columns = start_columns.copy()
-    start_loss = _fit(columns, y, ambient)[2] / norm
-    evaluations = len(chosen)
+    start_columns = np.stack([feet.direct(p) + extra[k] for k, p in enumerate(start)], axis=1)
+    start_loss = _fit(start_columns, y, ambient)[2] / norm
+    chosen, columns, evaluations = _levenberg_marquardt(
+        lambda j, p: feet.direct(p) + extra[j], start, y, ambient, delta, tolerance, iterations)
+    evaluations += 2 * len(start)
     for _ in range(sweeps):
         for j in range(len(chosen)):
             others = np.delete(columns, j, axis=1)
@@ -141,7 +193,7 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
             columns[:, j] = feet.direct(found.x) + extra[j]
         step = step / 2
     intensities, a, rss = _fit(columns, y, ambient)
-    if rss / norm > start_loss:  # Nelder-Mead keeps its best vertex, so this guards rounding only
+    if rss / norm > start_loss:  # both stages only ever accept a lower loss: this guards rounding only
         chosen = start
         intensities, a, rss = _fit(start_columns, y, ambient)
     return LightPolish(chosen, intensities, a, rss / norm, start_loss, evaluations)

@@ -118,11 +118,33 @@ def _single_losses(images: np.ndarray, y: np.ndarray, ambient: bool) -> np.ndarr
     return np.where(I > 0, rss, yy - y1**2 / P)
 
 
-def _losses(others: np.ndarray, images: np.ndarray, y: np.ndarray, ambient: bool) -> np.ndarray:
-    """Residual of each candidate image beside the fixed lights' columns `others (P, K)`, refitted."""
+def _best_candidate(others: np.ndarray, images: np.ndarray, y: np.ndarray, ambient: bool) -> int:
+    """Index of the candidate image `h (C, P)` whose non-negative fit beside the fixed lights'
+    columns `others (P, K)` (all refitted) leaves the smallest residual.
+
+    Unconstrained least squares bounds each candidate's residual from below in closed form: with
+    `Q` an orthonormal basis of the fixed columns (and the constant), `r0 = y - Q Q^T y`,
+
+        |r|^2 >= |r0|^2 - (h.r0)^2 / (|h|^2 - |Q^T h|^2).
+
+    Exact fits run in the order of the bounds until the best exact residual is below the next
+    bound, so the answer is the exact argmin at the cost of a few fits instead of `C`.
+    """
     if others.shape[1] == 0:
-        return _single_losses(images, y, ambient)
-    return np.array([_fit(np.concatenate([others, h[:, None]], axis=1), y, ambient)[2] for h in images])
+        return int(np.argmin(_single_losses(images, y, ambient)))
+    Q = np.linalg.qr(np.concatenate([others, np.ones((len(y), 1))], axis=1) if ambient else others)[0]
+    r0 = y - Q @ (Q.T @ y)
+    G = images @ Q
+    hh = np.maximum(np.einsum("cp,cp->c", images, images) - np.einsum("cm,cm->c", G, G), 1e-300)
+    bound = float(r0 @ r0) - (images @ r0) ** 2 / hh
+    best, best_loss = -1, np.inf
+    for i in np.argsort(bound, kind="stable"):
+        if bound[i] > best_loss:
+            break
+        loss = _fit(np.concatenate([others, images[i][:, None]], axis=1), y, ambient)[2]
+        if loss < best_loss:
+            best, best_loss = int(i), loss
+    return best
 
 
 def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=None, points: int = 12,
@@ -180,8 +202,7 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
                 local = local[~_inside_occluders(scene, local)]
                 local_images = _unit_images(caster, shadows, local)
                 scored += len(local)
-                losses = _losses(np.delete(columns, j, axis=1), local_images, y, ambient)
-                best = int(np.argmin(losses))
+                best = _best_candidate(np.delete(columns, j, axis=1), local_images, y, ambient)
                 chosen[j] = local[best]
                 columns[:, j] = local_images[best]
             spacing = spacing / 2
@@ -194,7 +215,7 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
     for start in np.argsort(first)[:starts]:  # the best coarse candidates each start a greedy pass
         chosen, columns = [grid[start]], images[start][:, None]
         for _ in range(count - 1):  # greedy: the candidate that lowers the residual most, earlier lights refitted
-            pick = int(np.argmin(_losses(columns, images, y, ambient)))
+            pick = _best_candidate(columns, images, y, ambient)
             chosen.append(grid[pick])
             columns = np.concatenate([columns, images[pick][:, None]], axis=1)
         chosen, columns, rss, scored = refine_all(chosen, columns, scored)
@@ -227,3 +248,14 @@ def containing_surface(scene: Scene, positions: np.ndarray) -> np.ndarray:
 def _inside_occluders(scene: Scene, positions: np.ndarray) -> np.ndarray:
     """`(C,)` True where a position lies inside a closed mesh of the scene."""
     return containing_surface(scene, positions) >= 0
+
+
+def check_outside(scene: Scene, lights):
+    """A light inside a closed occluder lights nothing the camera sees: refuse it up front."""
+    owner = containing_surface(scene, lights)
+    if np.any(owner >= 0):
+        k = int(owner[owner >= 0].min())
+        raise ValueError(
+            f"initial light(s) {np.nonzero(owner == k)[0].tolist()} lie inside surface {k} (a closed mesh); "
+            "start them outside the occluders"
+        )
