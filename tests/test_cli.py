@@ -4,12 +4,15 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import hiddenjax as hj
 from hiddenjax.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 SCENE = """
 [grid]
@@ -210,3 +213,37 @@ def test_design_bad_input_one_line_no_output(tmp_path, capsys, args, words):
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and words in lines[0] and lines[0].startswith("hiddenjax design: error:")
     assert not (tmp_path / "out").exists()
+
+
+def test_lights_from_a_photo_of_a_scene_file(tmp_path, capsys):
+    """`hiddenjax lights`: the bundled teapot scene file at 48x48, a photo from Embree with 16 other
+    footprint samples plus an ambient; the fitted light lands within 1 cm (measured 0.2 cm)."""
+    scene = (ROOT / "data_fixtures" / "teapot_scene.toml").read_text()
+    scene = scene.replace('mesh = "teapot"', 'mesh = "sphere"').replace("width = 128", "width = 48")
+    (tmp_path / "scene.toml").write_text(scene.replace("height = 128", "height = 48"))
+    setup = hj.scenes.object_on_plane("sphere", width=48, height=48)  # the same scene and camera
+    light = np.array([[0.12, 0.35, 0.08]])
+    photo = hj.render_point_lights(setup.scene, setup.camera, light, [0.05], pixel_samples=16, seed=5)
+    hj.io.write_exr(tmp_path / "photo.exr", photo + 0.1 * float(photo.mean()))
+    out, png = tmp_path / "lights.json", tmp_path / "fit.png"
+    assert main(["lights", str(tmp_path / "scene.toml"), str(tmp_path / "photo.exr"), "-o", str(out),
+                 "--png", str(png)]) == 0
+    found = json.loads(out.read_text())
+    assert np.linalg.norm(np.array(found["positions"]) - light) < 0.01, found
+    assert abs(found["intensities"][0] / 0.05 - 1) < 0.05 and found["relative_rms_residual"] < 0.05
+    assert png.is_file() and "light 0: (0.1" in capsys.readouterr().out
+    bad = [
+        (["--init", "0.1", "0.3", "0.1", "0.2"], "a multiple of 3 numbers"),
+        (["--init", "0.1", "0.3", "0.1", "--count", "2"], "--count 2 disagrees with the 1 light(s)"),
+        (["--init", "0.0", "0.02", "0.0"], "inside surface 1"),
+        (["--count", "0"], "--count must be at least 1"),
+    ]
+    for extra, words in bad:
+        assert main(["lights", str(tmp_path / "scene.toml"), str(tmp_path / "photo.exr"), "-o",
+                     str(tmp_path / "x.json"), *extra]) == 1
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and words in lines[0] and lines[0].startswith("hiddenjax lights: error:"), lines
+    hj.io.write_exr(tmp_path / "small.exr", np.ones((2, 3), np.float32))
+    assert main(["lights", str(tmp_path / "scene.toml"), str(tmp_path / "small.exr"), "-o", str(tmp_path / "x.json")]) == 1
+    assert "is 3x2 pixels but the scene file's camera is 48x48" in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()
