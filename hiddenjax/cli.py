@@ -275,6 +275,8 @@ def lights(args) -> dict:
     inner = cv2.erode(fitted.reshape(grey.shape), np.ones((3, 3), np.uint8)).astype(bool)
     residual = float(np.sqrt(np.mean((model[inner] - grey[inner]) ** 2) / np.mean(grey[inner] ** 2)))
     results = dict(positions=fit.positions.tolist(), intensities=fit.intensities.tolist(), ambient=fit.ambient,
+                   channel_intensities=None if fit.channel_intensities is None else fit.channel_intensities.tolist(),
+                   channel_ambient=None if fit.channel_ambient is None else fit.channel_ambient.tolist(),
                    relative_rms_residual=residual, residual_pixels=int(inner.sum()), seconds=round(seconds, 2))
     if png is not None:
         white = float(np.percentile(grey, 99))
@@ -653,7 +655,7 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("lights", help="point lights from the shadows in a photo of a known scene",
                        description="Fit point lights (positions, intensities, an ambient constant) to a photo of the "
                                    "scene a TOML file describes: a global search scored by Embree hard shadows, then "
-                                   "a polish on box-filtered shadows plus one bounce (thesis eq. 4.10-4.11).")
+                                   "a polish on box-filtered shadows plus two diffuse bounces (thesis eq. 4.10-4.11).")
     p.add_argument("scene", help="TOML scene file (schema: docs/guide/scene-files.md); its observed surfaces are fitted")
     p.add_argument("image", help="the photo: " + IMAGE_HELP)
     p.add_argument("-o", "--output", required=True, help="output .json: positions (m), intensities (W/sr), ambient")

@@ -31,7 +31,9 @@ class LightFit(NamedTuple):
     normalized loss `mean(r^2)/mean(y^2)` after each round; `trajectory (K+1.., L, 3)` positions from
     the start through each soft round, then the search's positions where they explain the photo
     better, then the polished ones (the last row is `positions`); `temperatures (K,)` used in each
-    round; `ambient` the fitted constant radiance (0 without `ambient=True`).
+    round; `ambient` the fitted constant radiance (0 without `ambient=True`); after the polish,
+    `channel_intensities (L, C)` and `channel_ambient (C,)` each photo channel's own (a light's
+    colour times the camera's gain; `intensities` and `ambient` are their channel means), else None.
     """
 
     positions: np.ndarray
@@ -40,6 +42,8 @@ class LightFit(NamedTuple):
     trajectory: np.ndarray
     temperatures: np.ndarray
     ambient: float = 0.0
+    channel_intensities: np.ndarray | None = None
+    channel_ambient: np.ndarray | None = None
 
 
 def _residual(params, args):
@@ -87,7 +91,8 @@ def fit_lights(
     """Fit point-light positions and intensities to an image lit by those lights (eq. 4.10-4.11).
 
     **Arguments:**
-    - `image (H, W)` or `(H, W, 3)`: linear radiance (RGB is fitted through its channel mean).
+    - `image (H, W)` or `(H, W, 3)`: linear radiance (the search and the soft fit use its channel
+      mean; the polish fits each channel's intensities and ambient with shared positions).
     - `scene`, `camera`: the known geometry; pixels of the default mask (observed surfaces) are fitted.
     - `init (L, 3)`: initial positions, metres; `None` (default) starts from `search_lights`
       (a global search over positions scored by Embree hard shadows) for `count` lights.
@@ -109,9 +114,9 @@ def fit_lights(
       normalized loss with `learning_rate` times the scene size per unit gradient, as the thesis).
     - `intensities (L,)`: initial intensities; default the least-squares ones at `init`.
     - `shadows`: a prepared `ShadowScene` to reuse across calls (else built from scene and camera).
-    - `polish`: finish with `polish_lights` (box-filtered Embree shadows plus one bounce, no
-      gradient): the pixel-centre soft model is flat between pixel centres and reads bounce light
-      as a moved light; the polish removes most of that bias (a few seconds at 128x128).
+    - `polish`: finish with `polish_lights` (box-filtered Embree shadows plus two diffuse bounces,
+      no gradient): the pixel-centre soft model is flat between pixel centres and reads bounce
+      light as a moved light; the polish removes most of that bias (a few seconds at 128x128).
 
     **Returns:** a `LightFit`.
     """
@@ -160,11 +165,13 @@ def fit_lights(
         intensities, a = searched.intensities, searched.ambient
     else:
         intensities, a, _ = hard_fit(image, scene, shadows, positions, ambient)
+    channels = (None, None)
     if polish:
         polished = polish_lights(image, scene, camera, positions, ambient=ambient, mask=mask)
         positions, intensities, a = polished.positions, polished.intensities, polished.ambient
+        channels = (polished.channel_intensities, polished.channel_ambient)
         trajectory.append(positions)
-    return LightFit(positions, intensities, np.array(history), np.stack(trajectory), temps, a)
+    return LightFit(positions, intensities, np.array(history), np.stack(trajectory), temps, a, *channels)
 
 
 def _soft_fit(shadows, y, scale, init, intensities, temperature, method, steps, rounds, ambient, learning_rate):

@@ -1,4 +1,4 @@
-"""The last step of a light fit: light positions polished against box-filtered hard shadows plus one bounce.
+"""The last step of a light fit: light positions polished against box-filtered hard shadows plus two bounces.
 
 A camera pixel integrates radiance over its footprint, and a path-traced (or real) photo holds
 light that reached the table after bouncing off the scene. The soft fit (`fit_lights`) shades
@@ -8,10 +8,14 @@ pixel is `S` stratified footprint points and the image of a unit light at `p` is
 
     h_p(pixel) = 1/S sum_s [ rho_s/pi max(0, n_s.(p - x_s)) / |p - x_s|^3 V(x_s, p) ] + b(pixel)
 
-(eq. 4.11 with Embree's exact visibility `V`, box-filtered), where `b` is one diffuse bounce,
-`rho/(S K) sum_{s,k} L_1(z_sk)` over `K` cosine-distributed rays from each footprint point to the
-surfaces `z` they hit, each lit directly by the unit light (`L_1 = rho_z/pi cos_z / d_z^2 V`). The
-bounce moves slowly with the light, so it is computed once at the starting positions.
+(eq. 4.11 with Embree's exact visibility `V`, box-filtered), where `b` is the diffuse
+interreflection, `rho/(S K) sum_{s,k} L(z_sk)` over `K` cosine-distributed rays from each
+footprint point to the surfaces `z` they hit, each lit directly by the unit light
+(`L_1 = rho_z/pi cos_z / d_z^2 V`) and, for the second bounce, through one more
+cosine-distributed ray to the surface `z'` it hits (`L = L_1(z) + rho_z L_1(z')`). Both bounces
+matter on a table: the first is light off the object, the second the lit table relighting the
+object, which relights the table (for the sphere fixture 4.8 times the first). It moves slowly
+with the light, so it is computed once at the starting positions.
 Intensities and an ambient constant are fitted in closed form (non-negative least squares), so
 the loss is a function of the positions alone (variable projection),
 
@@ -42,10 +46,12 @@ from ._search import _fit, check_outside, direct_images
 class LightPolish(NamedTuple):
     """Result of `polish_lights`.
 
-    **Fields:** `positions (L, 3)` metres; `intensities (L,)` W/sr; `ambient` the fitted constant
-    radiance; `loss` the normalized residual `|r|^2 / |y|^2` at `positions`; `start_loss` the same
-    at the starting positions (the polish never returns a worse fit); `evaluations` how many
-    candidate images were rendered.
+    **Fields:** `positions (L, 3)` metres; `intensities (L,)` W/sr and `ambient` the fitted constant
+    radiance, both the mean over the photo's channels; `loss` the normalized residual
+    `|r|^2 / |y|^2` at `positions`, summed over channels; `start_loss` the same at the starting
+    positions (the polish never returns a worse fit); `evaluations` how many candidate images were
+    rendered; `channel_intensities (L, C)` and `channel_ambient (C,)` each channel's own (`C = 1`
+    for a grey photo): a light's colour times the camera's gain in that channel.
     """
 
     positions: np.ndarray
@@ -54,6 +60,8 @@ class LightPolish(NamedTuple):
     loss: float
     start_loss: float
     evaluations: int
+    channel_intensities: np.ndarray | None = None
+    channel_ambient: np.ndarray | None = None
 
 
 class _Footprints:
@@ -72,46 +80,66 @@ class _Footprints:
         """`(P,)` box-filtered direct image of a unit light at `p (3,)`, Embree visibility."""
         return direct_images(self.caster, self.x, self.n, self.rho, p).reshape(-1, self.S).mean(axis=1)
 
-    def bounce(self, p, rays: int, seed: int) -> np.ndarray:
-        """`(P,)` one diffuse bounce of a unit light at `p`: `rays` cosine-distributed rays per point."""
+    def bounce(self, p, rays: int, seed: int, bounces: int = 1) -> np.ndarray:
+        """`(P,)` the diffuse interreflections of a unit light at `p`, up to `bounces` (1 or 2):
+        `rays` cosine-distributed rays per footprint point; a second bounce follows one more
+        cosine-distributed ray from each surface they hit (a path-traced estimate)."""
+        rng = np.random.default_rng(seed)
         n, x = np.repeat(self.n, rays, axis=0), np.repeat(self.x, rays, axis=0)
-        w = cosine_directions(n, np.random.default_rng(seed))
-        hits = self.caster.intersect(x, w)
-        radiance = np.zeros(len(x))
-        h = np.nonzero(hits.surface >= 0)[0]
-        z = hits.position[h] + self.caster.offset * hits.normal[h]
-        radiance[h] = direct_images(self.caster, z, hits.normal[h], hits.albedo[h], p)
-        # cosine-distributed rays: E = pi/K sum L, so rho/pi E = rho/K sum L
+        radiance = self._outgoing(x, n, p, rng, bounces)
         return (np.repeat(self.rho, rays) * radiance).reshape(-1, self.S * rays).mean(axis=1)
 
+    def _outgoing(self, x, n, p, rng, bounces: int) -> np.ndarray:
+        """Radiance arriving at `x` along one cosine-distributed ray each, from surfaces lit directly
+        and (`bounces - 1` times) indirectly. Cosine-distributed rays: `E = pi/K sum L`, so the
+        reflected radiance is `rho/pi E = rho/K sum L`."""
+        hits = self.caster.intersect(x, cosine_directions(n, rng))
+        radiance = np.zeros(len(x))
+        h = np.nonzero(hits.surface >= 0)[0]
+        z, nz, rho = hits.position[h] + self.caster.offset * hits.normal[h], hits.normal[h], hits.albedo[h]
+        radiance[h] = direct_images(self.caster, z, nz, rho, p)
+        if bounces > 1:
+            radiance[h] += rho * self._outgoing(z, nz, p, rng, bounces - 1)
+        return radiance
 
-def _levenberg_marquardt(column, chosen, y, ambient: bool, delta: float, tolerance: float, iterations: int):
-    """Joint steps on every light's position: `column(j, p) (P,)` is light `j`'s unit image at `p`.
+
+def _fit_channels(columns: np.ndarray, Y: np.ndarray, ambient: bool):
+    """`_fit` per channel of `Y (P, C)`: `(I (L, C), a (C,), residual^2 summed over channels)`."""
+    fits = [_fit(columns, Y[:, c], ambient) for c in range(Y.shape[1])]
+    return np.stack([f[0] for f in fits], axis=1), np.array([f[1] for f in fits]), sum(f[2] for f in fits)
+
+
+def _levenberg_marquardt(column, chosen, Y, ambient: bool, delta: float, tolerance: float, iterations: int):
+    """Joint steps on every light's position: `column(j, p) (P,)` is light `j`'s unit image at `p`,
+    `Y (P, C)` the photo's channels, each with its own intensities and ambient.
 
     Returns `(positions, columns, evaluations)`; a step is taken only where it lowers the loss.
     """
-    chosen, L, ones = np.array(chosen, dtype=np.float64), len(chosen), np.ones((len(y), 1))
+    chosen, L, ones = np.array(chosen, dtype=np.float64), len(chosen), np.ones((len(Y), 1))
     columns = np.stack([column(j, p) for j, p in enumerate(chosen)], axis=1)
-    intensities, a, rss = _fit(columns, y, ambient)
+    intensities, a, rss = _fit_channels(columns, Y, ambient)
     damping, evaluations = 1e-3, 0
     for _ in range(iterations):
-        D = np.empty((len(y), 3 * L))
+        dh = np.empty((len(Y), 3 * L))  # d h_j / d p_jk, central differences
         for j in range(L):
             for k in range(3):
                 e = np.zeros(3)
                 e[k] = delta
-                D[:, 3 * j + k] = intensities[j] * (column(j, chosen[j] + e) - column(j, chosen[j] - e)) / (2 * delta)
+                dh[:, 3 * j + k] = (column(j, chosen[j] + e) - column(j, chosen[j] - e)) / (2 * delta)
         evaluations += 6 * L
         A = np.concatenate([columns, ones], axis=1) if ambient else columns
-        r = y - A @ (np.append(intensities, a) if ambient else intensities)
-        J = D - A @ np.linalg.lstsq(A, D, rcond=None)[0]  # the intensities and ambient refit: projected out
-        M, g = J.T @ J, J.T @ r
+        M, g = np.zeros((3 * L, 3 * L)), np.zeros(3 * L)
+        for c in range(Y.shape[1]):
+            D = dh * np.repeat(intensities[:, c], 3)
+            r = Y[:, c] - A @ (np.append(intensities[:, c], a[c]) if ambient else intensities[:, c])
+            J = D - A @ np.linalg.lstsq(A, D, rcond=None)[0]  # the intensities and ambient refit: projected out
+            M, g = M + J.T @ J, g + J.T @ r
         while damping < 1e4:
             step = np.linalg.solve(M + damping * np.diag(np.diag(M) + 1e-30), g).reshape(L, 3)
             trial = chosen + step
             trial_columns = np.stack([column(j, p) for j, p in enumerate(trial)], axis=1)
             evaluations += L
-            fitted = _fit(trial_columns, y, ambient)
+            fitted = _fit_channels(trial_columns, Y, ambient)
             if fitted[2] < rss:
                 chosen, columns, (intensities, a, rss) = trial, trial_columns, fitted
                 damping = max(damping / 3, 1e-6)
@@ -122,20 +150,22 @@ def _levenberg_marquardt(column, chosen, y, ambient: bool, delta: float, toleran
     return chosen, columns, evaluations
 
 
-def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_samples: int = 9, bounce: bool = True,
+def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_samples: int = 9, bounce: int = 2,
                   bounce_rays: int = 8, step: float = 0.005, tolerance: float = 2e-4, sweeps: int = 1,
                   max_evaluations: int = 300, delta: float = 0.008, iterations: int = 15, ambient: bool = True,
                   mask=None, seed: int = 0) -> LightPolish:
-    """Refine light positions against box-filtered Embree shadows plus one bounce (no gradient).
+    """Refine light positions against box-filtered Embree shadows plus two bounces (no gradient).
 
     **Arguments:**
-    - `image (H, W)` or `(H, W, 3)`: linear radiance (RGB through its channel mean).
+    - `image (H, W)` or `(H, W, C)`: linear radiance; every channel has its own intensities and
+      ambient (a light's colour, the camera's gains), the positions are shared.
     - `scene`, `camera`: the known geometry; the fitted pixels are those whose whole footprint
       sees observed surfaces (and `mask`, when given).
     - `positions (L, 3)`: the start, metres (e.g. `fit_lights`' result).
     - `pixel_samples`: stratified footprint points per pixel (the box filter).
-    - `bounce`: add one diffuse bounce of each light (computed at the start) to its image.
-    - `bounce_rays`: rays per footprint point for the bounce.
+    - `bounce`: how many diffuse bounces of each light (computed at the start) its image holds:
+      0 (or `False`) none, 1 (or `True`) one, 2 two.
+    - `bounce_rays`: rays per footprint point for the bounces.
     - `delta`: the finite-difference step of the joint Levenberg-Marquardt stage, metres (a few
       millimetres: wide enough to average over footprint samples); `iterations`: its most steps
       (0 skips it).
@@ -151,6 +181,8 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
     if start.ndim != 2 or start.shape[1] != 3 or not np.all(np.isfinite(start)):
         raise ValueError(f"positions must be finite light positions (L, 3), got shape {start.shape}")
     check_outside(scene, start)
+    if int(bounce) not in (0, 1, 2) or bounce != int(bounce):
+        raise ValueError(f"bounce must be 0, 1 or 2 (diffuse bounces; False/True mean 0/1), got {bounce!r}")
     for name, value, least in (("pixel_samples", pixel_samples, 1), ("bounce_rays", bounce_rays, 1),
                                ("sweeps", sweeps, 0), ("max_evaluations", max_evaluations, 1),
                                ("iterations", iterations, 0)):
@@ -161,20 +193,19 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
     image = np.asarray(image, np.float64)
     if image.shape[:2] != (camera.height, camera.width) or image.ndim not in (2, 3):
         raise ValueError(f"image shape {image.shape} does not match the camera {(camera.height, camera.width)}")
-    grey = image.mean(axis=-1) if image.ndim == 3 else image
     feet = _Footprints(scene, camera, pixel_samples, mask, seed)
-    y = grey.reshape(-1)[feet.pixels]
-    if not np.all(np.isfinite(y)):
+    Y = image.reshape(camera.height * camera.width, -1)[feet.pixels]
+    if not np.all(np.isfinite(Y)):
         raise ValueError("image contains non-finite values at the fitted pixels")
-    norm = float(y @ y)
+    norm = float(np.sum(Y * Y))
     if not norm > 0:
         raise ValueError("the image is black over the fitted pixels: there is nothing to fit")
 
-    extra = [feet.bounce(p, bounce_rays, seed + 1 + k) if bounce else 0.0 for k, p in enumerate(start)]
+    extra = [feet.bounce(p, bounce_rays, seed + 1 + k, int(bounce)) if bounce else 0.0 for k, p in enumerate(start)]
     start_columns = np.stack([feet.direct(p) + extra[k] for k, p in enumerate(start)], axis=1)
-    start_loss = _fit(start_columns, y, ambient)[2] / norm
+    start_loss = _fit_channels(start_columns, Y, ambient)[2] / norm
     chosen, columns, evaluations = _levenberg_marquardt(
-        lambda j, p: feet.direct(p) + extra[j], start, y, ambient, delta, tolerance, iterations)
+        lambda j, p: feet.direct(p) + extra[j], start, Y, ambient, delta, tolerance, iterations)
     evaluations += 2 * len(start)
     for _ in range(sweeps):
         for j in range(len(chosen)):
@@ -184,7 +215,7 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
                 nonlocal evaluations
                 evaluations += 1
                 h = feet.direct(p) + extra[j]
-                return _fit(np.concatenate([others, h[:, None]], axis=1), y, ambient)[2] / norm
+                return _fit_channels(np.concatenate([others, h[:, None]], axis=1), Y, ambient)[2] / norm
 
             simplex = chosen[j] + np.concatenate([np.zeros((1, 3)), step * np.eye(3)])
             found = scipy.optimize.minimize(loss, chosen[j], method="Nelder-Mead", options=dict(
@@ -192,8 +223,9 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
             chosen[j] = found.x
             columns[:, j] = feet.direct(found.x) + extra[j]
         step = step / 2
-    intensities, a, rss = _fit(columns, y, ambient)
+    intensities, a, rss = _fit_channels(columns, Y, ambient)
     if rss / norm > start_loss:  # both stages only ever accept a lower loss: this guards rounding only
         chosen = start
-        intensities, a, rss = _fit(start_columns, y, ambient)
-    return LightPolish(chosen, intensities, a, rss / norm, start_loss, evaluations)
+        intensities, a, rss = _fit_channels(start_columns, Y, ambient)
+    return LightPolish(chosen, intensities.mean(axis=1), float(a.mean()), rss / norm, start_loss, evaluations,
+                       intensities, a)

@@ -154,7 +154,10 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
     **Arguments:**
     - `image (H, W)` or `(H, W, 3)`: linear radiance (RGB through its channel mean).
     - `scene`, `camera`: the known geometry; the fitted pixels are the scene's default mask.
-    - `count`: how many lights.
+    - `count`: how many lights. Lights after the first are added greedily, each at the coarse
+      candidate that lowers the residual most (never within 1.5 grid steps of a placed light);
+      after the refinement each light is re-seated once, the others held, at the best coarse
+      candidate away from them, refined, and kept there if the fit improves.
     - `box (2, 3)`: the region to search, min and max corners in metres (default `default_box`).
     - `points`: grid points per axis of the coarse search (`points^3` candidates).
     - `starts`: how many of the best coarse candidates each start a greedy pass and its
@@ -188,12 +191,13 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
     images = _unit_images(caster, shadows, grid)
     scored = len(grid)
 
-    def refine_all(chosen, columns, scored):
-        """Pattern search around every light in turn (the others held): 3x3x3 grids, halving the step."""
+    def refine_all(chosen, columns, scored, lights=None):
+        """Pattern search around every light (or those listed) in turn, the others held: 3x3x3 grids,
+        halving the step."""
         chosen, columns = list(chosen), columns.copy()
         spacing = (box[1] - box[0]) / (points - 1)
         for _ in range(refine):
-            for j in range(count):
+            for j in range(count) if lights is None else lights:
                 # the 3x3x3 pattern, and points along the ray from the occluders through the light:
                 # the loss has a long, narrow valley there (a farther, brighter light casts a
                 # similar shadow), which axis-aligned steps cross but do not follow
@@ -210,18 +214,36 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
 
     centre = np.mean(_occluder_bounds(scene), axis=0)
     offsets = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    spacing = (box[1] - box[0]) / (points - 1)
     best_run = None
+
+    def away_from(placed):
+        """Coarse candidates more than 1.5 grid steps from every placed light: two lights a grid
+        step apart are one light (a near-copy of a placed light can lower the residual more than a
+        coarse candidate at another light, whose shadow pattern is off by up to half a step)."""
+        return np.all([np.max(np.abs(grid - c) / spacing, axis=1) > 1.5 for c in placed], axis=0)
+
     first = _single_losses(images, y, ambient)
     for start in np.argsort(first)[:starts]:  # the best coarse candidates each start a greedy pass
         chosen, columns = [grid[start]], images[start][:, None]
         for _ in range(count - 1):  # greedy: the candidate that lowers the residual most, earlier lights refitted
-            pick = _best_candidate(columns, images, y, ambient)
+            apart = away_from(chosen)
+            pick = np.flatnonzero(apart)[_best_candidate(columns, images[apart], y, ambient)]
             chosen.append(grid[pick])
             columns = np.concatenate([columns, images[pick][:, None]], axis=1)
         chosen, columns, rss, scored = refine_all(chosen, columns, scored)
         if best_run is None or rss < best_run[2]:
             best_run = (chosen, columns, rss)
-    chosen, columns, _ = best_run
+    chosen, columns, rss = best_run
+    for j in range(count if count > 1 else 0):  # re-seat each light, the others held: a greedy pick can be wrong
+        others = [c for k, c in enumerate(chosen) if k != j]
+        apart = away_from(others)
+        pick = np.flatnonzero(apart)[_best_candidate(np.delete(columns, j, axis=1), images[apart], y, ambient)]
+        trial, trial_columns = list(chosen), columns.copy()
+        trial[j], trial_columns[:, j] = grid[pick], images[pick]
+        trial, trial_columns, trial_rss, scored = refine_all(trial, trial_columns, scored, lights=[j])
+        if trial_rss < rss:
+            chosen, columns, rss = trial, trial_columns, trial_rss
     intensities, a, rss = _fit(columns, y, ambient)
     return LightSearch(np.stack(chosen), intensities, a, rss / norm, scored, box)
 

@@ -93,7 +93,10 @@ def _scene_dict(mi, scene: Scene, camera: Camera, folder: Path, integrator: dict
         surface.mesh.export(path)
         shapes[f"surface{k}"] = {
             "type": "ply", "filename": str(path), "face_normals": True,
-            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": float(surface.albedo)}},
+            # two-sided, as hiddenjax's surfaces are (Embree's normal faces the ray): Mitsuba's diffuse
+            # BSDF alone is black from behind, so a mesh wound inward (the teapot) would be black
+            "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb",
+                                                                                 "value": float(surface.albedo)}}},
         }
     return {
         "type": "scene",
