@@ -598,6 +598,8 @@ def test_search_finds_two_lights_not_one_twice():
     found = sh.search_lights(photo + 0.1 * float(photo.mean()), setup.scene, setup.camera, count=2)
     near = np.linalg.norm(found.positions[:, None] - lights[None], axis=-1)  # (found, true)
     assert np.all(near.min(axis=0) < 0.04) and np.all(near.min(axis=1) < 0.04), near
+    coarse = sh.search_lights(photo, setup.scene, setup.camera, count=3, points=2)  # no candidate 1.5 steps away
+    assert coarse.positions.shape == (3, 3) and np.all(np.isfinite(coarse.positions))
 
 
 def test_search_bound_picks_the_exact_best_candidate():

@@ -220,8 +220,10 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
     def away_from(placed):
         """Coarse candidates more than 1.5 grid steps from every placed light: two lights a grid
         step apart are one light (a near-copy of a placed light can lower the residual more than a
-        coarse candidate at another light, whose shadow pattern is off by up to half a step)."""
-        return np.all([np.max(np.abs(grid - c) / spacing, axis=1) > 1.5 for c in placed], axis=0)
+        coarse candidate at another light, whose shadow pattern is off by up to half a step). On a
+        grid too coarse to leave any, every candidate."""
+        apart = np.all([np.max(np.abs(grid - c) / spacing, axis=1) > 1.5 for c in placed], axis=0)
+        return apart if apart.any() else np.ones(len(grid), bool)
 
     first = _single_losses(images, y, ambient)
     for start in np.argsort(first)[:starts]:  # the best coarse candidates each start a greedy pass
