@@ -109,14 +109,15 @@ def _fit_channels(columns: np.ndarray, Y: np.ndarray, ambient: bool):
     return np.stack([f[0] for f in fits], axis=1), np.array([f[1] for f in fits]), sum(f[2] for f in fits)
 
 
-def _levenberg_marquardt(column, chosen, Y, ambient: bool, delta: float, tolerance: float, iterations: int):
-    """Joint steps on every light's position: `column(j, p) (P,)` is light `j`'s unit image at `p`,
-    `Y (P, C)` the photo's channels, each with its own intensities and ambient.
+def _levenberg_marquardt(column, chosen, columns, Y, ambient: bool, delta: float, tolerance: float, iterations: int):
+    """Joint steps on every light's position: `column(j, p) (P,)` is light `j`'s unit image at `p`
+    (`columns (P, L)` those at the start `chosen`), `Y (P, C)` the photo's channels, each with its
+    own intensities and ambient.
 
     Returns `(positions, columns, evaluations)`; a step is taken only where it lowers the loss.
     """
-    chosen, L, ones = np.array(chosen, dtype=np.float64), len(chosen), np.ones((len(Y), 1))
-    columns = np.stack([column(j, p) for j, p in enumerate(chosen)], axis=1)
+    chosen, columns = np.array(chosen, dtype=np.float64), columns.copy()  # the caller's stay as they are
+    L, ones = len(chosen), np.ones((len(Y), 1))
     intensities, a, rss = _fit_channels(columns, Y, ambient)
     damping, evaluations = 1e-3, 0
     for _ in range(iterations):
@@ -202,11 +203,12 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
         raise ValueError("the image is black over the fitted pixels: there is nothing to fit")
 
     extra = [feet.bounce(p, bounce_rays, seed + 1 + k, int(bounce)) if bounce else 0.0 for k, p in enumerate(start)]
-    start_columns = np.stack([feet.direct(p) + extra[k] for k, p in enumerate(start)], axis=1)
+    column = lambda j, p: feet.direct(p) + extra[j]  # light j's unit image at p
+    start_columns = np.stack([column(j, p) for j, p in enumerate(start)], axis=1)
     start_loss = _fit_channels(start_columns, Y, ambient)[2] / norm
-    chosen, columns, evaluations = _levenberg_marquardt(
-        lambda j, p: feet.direct(p) + extra[j], start, Y, ambient, delta, tolerance, iterations)
-    evaluations += 2 * len(start)
+    chosen, columns, evaluations = _levenberg_marquardt(column, start, start_columns, Y, ambient, delta, tolerance,
+                                                        iterations)
+    evaluations += len(start)
     for _ in range(sweeps):
         for j in range(len(chosen)):
             others = np.delete(columns, j, axis=1)
@@ -214,14 +216,13 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
             def loss(p, j=j, others=others):
                 nonlocal evaluations
                 evaluations += 1
-                h = feet.direct(p) + extra[j]
-                return _fit_channels(np.concatenate([others, h[:, None]], axis=1), Y, ambient)[2] / norm
+                return _fit_channels(np.concatenate([others, column(j, p)[:, None]], axis=1), Y, ambient)[2] / norm
 
             simplex = chosen[j] + np.concatenate([np.zeros((1, 3)), step * np.eye(3)])
             found = scipy.optimize.minimize(loss, chosen[j], method="Nelder-Mead", options=dict(
                 initial_simplex=simplex, xatol=tolerance, fatol=1e-12, maxfev=max_evaluations))
             chosen[j] = found.x
-            columns[:, j] = feet.direct(found.x) + extra[j]
+            columns[:, j] = column(j, found.x)
         step = step / 2
     intensities, a, rss = _fit_channels(columns, Y, ambient)
     if rss / norm > start_loss:  # both stages only ever accept a lower loss: this guards rounding only
