@@ -1,6 +1,6 @@
 """Light fitting on path-traced photos: accuracy from near and far starts, time per light.
 
-    python benchmarks/bench_light_fit.py [--quick] [--out DIR] [--part all|single|multi]
+    python benchmarks/bench_light_fit.py [--quick] [--out DIR] [--part all|single|multi|textured]
 
 Photos: Mitsuba 3's path tracer (`max_depth=4`: direct light plus two diffuse bounces, 256 spp,
 box filter) of the fixtures on a table at 128x128 pixels, each under one isotropic point light
@@ -10,8 +10,13 @@ photos fall back to Embree hard-shadow renders plus a constant ambient (reported
 `results.json` as `photos`). Fits: `hj.shadows.fit_lights` from a start 5 cm and 30 cm off (a
 random direction) and with no start at all (`init=None`: the global search in the default box),
 with their defaults: the ambient term, the search, then the polish (box-filtered Embree shadows
-plus one bounce; joint Levenberg-Marquardt, then Nelder-Mead). Baseline in the same run: one
+plus two bounces; joint Levenberg-Marquardt, then Nelder-Mead). Baseline in the same run: one
 Embree hard-shadow render of the same image (`hj.render_point_lights`).
+
+`--part textured`: the teapot on a wood-textured table (`hj.scenes.wood_texture`, mean albedo
+0.5) under the three single lights, photographed with and without the teapot (the reference);
+fits with `reference=` from 5 cm, 30 cm and no start, and without it from 5 cm, on a scene that
+knows only the table's mean albedo.
 """
 
 import argparse
@@ -71,12 +76,41 @@ def _error(found, truth):
     return np.linalg.norm(found[list(best)] - truth, axis=1)
 
 
+def _textured(size, lights, render, table):
+    """The teapot on a wood-textured table: fits with and without a reference photo."""
+    plain = hj.scenes.object_on_plane("teapot", width=size, height=size, plane_albedo=0.5)  # what the fit knows
+    span = float(np.ptp(plain.scene[0].mesh.vertices[:, 0]))
+    texture = hj.scenes.wood_texture(span)
+    textured = hj.scenes.object_on_plane("teapot", width=size, height=size, plane_albedo=texture)
+    table_alone = hj.Scene([textured.scene[0]])
+    rng, rows = np.random.default_rng(1), []
+    for light in lights:
+        photo = render(textured.scene, textured.camera, light[None])
+        reference = render(table_alone, textured.camera, light[None])
+        for start, with_reference in ((0.05, True), (0.30, True), (None, True), (0.05, False)):
+            d = rng.normal(size=3)
+            init = None if start is None else light[None] + start * d / np.linalg.norm(d)
+            t = time.perf_counter()
+            fit = hj.shadows.fit_lights(photo, plain.scene, plain.camera, init,
+                                        reference=reference if with_reference else None)
+            seconds = time.perf_counter() - t
+            err = float(np.linalg.norm(fit.positions[0] - light))
+            rows.append(dict(light=light.tolist(), start=start, reference=with_reference, error_m=err,
+                             seconds=seconds, intensity=float(fit.intensities[0])))
+            table.append((f"teapot, textured table {light.tolist()}",
+                          ("none" if start is None else f"{100 * start:.0f} cm off")
+                          + (", reference" if with_reference else ", no reference"),
+                          f"{100 * err:.2f}", f"{seconds:.1f}"))
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=Path("out/bench_light_fit"))
-    ap.add_argument("--part", choices=("all", "single", "multi"), default="all",
-                    help="single lights, several at once, or both (the starts are the same either way)")
+    ap.add_argument("--part", choices=("all", "single", "multi", "textured"), default="all",
+                    help="single lights, several at once, both (the starts are the same either way), or a "
+                         "textured table with a reference photo")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     size, fixtures, lights = (48, ["sphere"], LIGHTS[:1]) if args.quick else (128, ["teapot", "sphere", "coded_aperture"],
@@ -86,7 +120,7 @@ def main(argv=None):
     results = dict(photos=photos, size=size, intensity=INTENSITY, single=[], multi=None)
     table = Table()
     table.append(("fixture / light", "start", "error (cm)", "time (s), x Embree render"))
-    for name in fixtures:
+    for name in fixtures if args.part != "textured" else []:
         scene, cam = _fixture(name, size)
         for light in lights:
             if args.part == "multi":  # draw the same starts, fit nothing
@@ -110,7 +144,7 @@ def main(argv=None):
                                               ambient=fit.ambient))
                 table.append((f"{name} ({len(scene[1].triangles)} tri) {light.tolist()}", label, f"{100 * err:.2f}",
                               f"{seconds:.1f}, {seconds / embree:.0f}x"))
-    if not args.quick and args.part != "single":
+    if not args.quick and args.part in ("all", "multi"):
         for name, count in (("teapot", 3), ("sphere", 2), ("coded_aperture", 3)):
             scene, cam = _fixture(name, size)
             truth = LIGHTS[:count]
@@ -126,6 +160,8 @@ def main(argv=None):
                 table.append((f"{name}, {count} lights", "none" if start is None else "~30 cm off",
                               " / ".join(f"{100 * e:.2f}" for e in err),
                               f"{seconds:.1f} ({seconds / count:.1f} per light)"))
+    if args.part in ("all", "textured"):
+        results["textured"] = _textured(size, lights, render, table)
     table.print_all()
 
     fig, ax = plt.subplots(figsize=(6, 3.5))

@@ -6,7 +6,7 @@
     hiddenjax render A.npz env.exr -o image.exr
     hiddenjax cues A.npz [--image photo.exr] -o cues/
     hiddenjax lights SCENE.toml photo.exr -o lights.json [--count N] [--init X Y Z ...] [--reach M]
-                     [--no-polish] [--png fit.png]
+                     [--reference table.exr] [--no-polish] [--png fit.png]
     hiddenjax demo [--quick] [--out DIR]
     hiddenjax board -o board.png [--pdf board.pdf] [--squares C R] [--square M] [--marker M] [--dpi D]
     hiddenjax calibrate board.toml photo... -o camera.toml [--sheet check.png]
@@ -40,7 +40,7 @@ from . import io
 from . import metrics
 from . import photo as _photo
 from . import shadows as _shadows
-from .scene import EnvGrid, fixture, object_on_plane, procedural_sky
+from .scene import EnvGrid, Scene, fixture, object_on_plane, procedural_sky
 from .solvers import (DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior,
                       solve_illumination)
 from ._scene_file import load_scene
@@ -249,6 +249,14 @@ def lights(args) -> dict:
                          f"{camera.width}x{camera.height}; use the photo the scene file describes")
     if not np.all(np.isfinite(image)):
         raise ValueError(f"{args.image} contains NaN or infinite pixels; fix or mask them first")
+    reference = None
+    if args.reference is not None:
+        if args.no_polish:
+            raise ValueError("--reference needs the polish (it fits the photo's ratio to the reference); drop --no-polish")
+        reference = io.read_image(args.reference, srgb=args.srgb)
+        if reference.shape != image.shape:
+            raise ValueError(f"{args.reference} has shape {reference.shape} but {args.image} has {image.shape}; the "
+                             "reference is the same view, taken without the occluders")
     init = None
     if args.init is not None:
         if len(args.init) % 3:
@@ -263,11 +271,17 @@ def lights(args) -> dict:
     t0 = time.perf_counter()
     shadows = _shadows.ShadowScene.from_scene(spec.scene, camera, mask)
     fit = _shadows.fit_lights(image, spec.scene, camera, init, count=count, reach=args.reach,
-                              polish=not args.no_polish, mask=mask, shadows=shadows)
+                              polish=not args.no_polish, mask=mask, shadows=shadows, reference=reference)
     seconds = time.perf_counter() - t0
     grey = image.mean(axis=-1) if image.ndim == 3 else image
     model = np.asarray(render_point_lights(spec.scene, camera, fit.positions, fit.intensities, pixel_samples=4))
     model = model + fit.ambient
+    if reference is not None:  # the reference times the ratio of the scene with and without its occluders
+        bare = Scene([surface for surface in spec.scene if surface.observe])
+        plain = np.asarray(render_point_lights(bare, camera, fit.positions, fit.intensities, pixel_samples=4))
+        plain = plain + fit.ambient
+        ratio = np.divide(model, plain, out=np.zeros_like(model), where=plain > 0)
+        model = (reference.mean(axis=-1) if reference.ndim == 3 else reference) * ratio
     # the fitted pixels one pixel away from every other surface: an outline pixel mixes surfaces
     # differently in any two renderings (or a photo), which says nothing about the lights
     fitted = np.zeros(camera.height * camera.width, np.uint8)
@@ -663,6 +677,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--init", type=float, nargs="+", metavar="X Y Z",
                    help="a guess: x y z metres per light; the search then looks within --reach of it")
     p.add_argument("--reach", type=float, default=0.3, help="search box half-size around --init, metres (default 0.3)")
+    p.add_argument("--reference", help="a photo of the same view without the occluders (the surfaces with observe = "
+                                       "false), for a table whose albedo is not the scene file's (a texture): the "
+                                       "fit uses the photo's ratio to it; " + IMAGE_HELP)
     p.add_argument("--no-polish", action="store_true", help="the search and the soft sigmoid fit only (faster, coarser)")
     p.add_argument("--png", help="also write a picture: the photo, the fitted image and their difference")
     photo_options(p)

@@ -61,6 +61,28 @@ def test_mitsuba_point_lights_match_the_embree_render_on_the_table():
         render_point_lights_mitsuba(setup.scene, setup.camera, np.zeros((1, 2)))
 
 
+def test_mitsuba_textured_table_matches_the_embree_render():
+    """A texture albedo goes to Mitsuba as a bitmap (rows flipped: Mitsuba's row 0 is at v = 0):
+    its direct render of a wood-textured table under a point light is Embree's, pixel by pixel
+    (the texture flipped: 37% off). Measured: 1.4%. Per-face albedo is refused."""
+    pytest.importorskip("mitsuba")
+    from hiddenjax.transport._mitsuba import render_point_lights_mitsuba
+
+    plain = hj.scenes.object_on_plane("sphere", width=48, height=48)
+    span = float(np.ptp(plain.scene[0].mesh.vertices[:, 0]))
+    setup = hj.scenes.object_on_plane("sphere", width=48, height=48,
+                                      plane_albedo=hj.scenes.wood_texture(span, 1024, seed=2))
+    light = np.array([[0.12, 0.35, 0.08]])
+    pixels = np.asarray(hj.shadows.ShadowScene.from_scene(setup.scene, setup.camera).pixels)
+    ours = hj.render_point_lights(setup.scene, setup.camera, light, [0.05], pixel_samples=16).reshape(-1)[pixels]
+    theirs = render_point_lights_mitsuba(setup.scene, setup.camera, light, [0.05], max_depth=2,
+                                         spp=256).reshape(-1)[pixels]
+    assert np.linalg.norm(theirs - ours) / np.linalg.norm(ours) < 0.03
+    faces = hj.Scene([hj.Surface(setup.scene[0].mesh, albedo=[0.5, 0.6])])
+    with pytest.raises(ValueError, match="not per-face albedo"):
+        render_point_lights_mitsuba(faces, setup.camera, light, spp=1)
+
+
 @pytest.mark.parametrize("bounces", [1, 2])
 def test_polish_bounces_are_mitsubas_interreflections(bounces):
     """`polish_lights`' bounces against Mitsuba's: its path tracer with max_depth 2 + bounces minus 2

@@ -15,6 +15,7 @@ from ._setups import box_on_floor as box_on_floor
 from ._setups import doorways as doorways
 from ._setups import ground_plane as ground_plane
 from ._setups import object_on_plane as object_on_plane
+from ._setups import wood_texture as wood_texture
 from ._sky import procedural_sky as procedural_sky
 from ._surface import Scene as Scene
 from ._surface import Surface as Surface

@@ -4,6 +4,7 @@ from typing import NamedTuple
 
 import numpy as np
 import trimesh
+from scipy.ndimage import gaussian_filter
 
 from ._camera import Camera
 from ._fixtures import fixture
@@ -24,6 +25,27 @@ def ground_plane(size: float, height: float = 0.0) -> trimesh.Trimesh:
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     mesh.visual = trimesh.visual.TextureVisuals(uv=uv)
     return mesh
+
+
+def wood_texture(span: float, texels: int = 2048, *, grain: float = 0.025, mean: float = 0.5,
+                 seed: int = 0) -> np.ndarray:
+    """A wood-like grey albedo texture `(texels, texels)` for a square of `span` metres (a textured
+    table for `object_on_plane(plane_albedo=...)`; it repeats at the square's edges).
+
+    `t = mean + 0.18 sin(2 pi (x / grain + 0.4 b)) + 0.1 b + 0.05 f`, clipped to [0.05, 0.95]:
+    stripes `grain` metres apart, bent and shaded by blotches `b` (Gaussian noise smoothed over
+    2 cm, unit variance) and a fine speckle `f` (smoothed over 3 mm).
+    """
+    if not (np.isfinite(span) and span > 0 and np.isfinite(grain) and grain > 0):
+        raise ValueError(f"span and grain must be positive metres, got {span}, {grain}")
+    texel = span / texels
+    rng = np.random.default_rng(seed)
+    noise = lambda sigma: (lambda z: z / z.std())(gaussian_filter(rng.standard_normal((texels, texels)),
+                                                                  sigma / texel, mode="wrap"))
+    blotch, speckle = noise(0.02), noise(0.003)
+    x = np.arange(texels)[None, :] * texel
+    return np.clip(mean + 0.18 * np.sin(2 * np.pi * (x / grain + 0.4 * blotch)) + 0.1 * blotch + 0.05 * speckle,
+                   0.05, 0.95)
 
 
 def object_on_plane(

@@ -87,6 +87,7 @@ def fit_lights(
     mask=None,
     shadows: ShadowScene | None = None,
     polish: bool = True,
+    reference=None,
 ) -> LightFit:
     """Fit point-light positions and intensities to an image lit by those lights (eq. 4.10-4.11).
 
@@ -117,10 +118,17 @@ def fit_lights(
     - `polish`: finish with `polish_lights` (box-filtered Embree shadows plus two diffuse bounces,
       no gradient): the pixel-centre soft model is flat between pixel centres and reads bounce
       light as a moved light; the polish removes most of that bias (a few seconds at 128x128).
+    - `reference`: a photo of the same view without the occluders (the surfaces with
+      `observe=False`), same shape as `image`: for an observed surface whose albedo is not the
+      scene's (a textured table), the search fits the photo's ratio to it and the polish divides
+      each pixel's albedo out (`polish_lights`). Needs the polish, and no soft fit (`steps` 0).
 
     **Returns:** a `LightFit`.
     """
     shadows = ShadowScene.from_scene(scene, camera, mask) if shadows is None else shadows
+    if reference is not None and not (polish and steps in (None, 0)):
+        raise ValueError("reference= needs polish=True and no soft fit (steps=0 or None): the soft fit models "
+                         "the scene's albedo, not the photo's ratio to the reference")
     searched = None
     if init is None or search:
         box = None
@@ -132,7 +140,8 @@ def fit_lights(
             if not (np.isfinite(reach) and reach > 0):
                 raise ValueError(f"reach must be a positive distance in metres, got {reach}")
             box, count = np.stack([guess.min(axis=0) - reach, guess.max(axis=0) + reach]), len(guess)
-        searched = search_lights(image, scene, camera, count, box=box, ambient=ambient, shadows=shadows)
+        searched = search_lights(image, scene, camera, count, box=box, ambient=ambient, shadows=shadows,
+                                 reference=reference)
         init = searched.positions
         temperature = (1000.0, 3000.0) if temperature is None else temperature
     temperature = (100.0, 1000.0) if temperature is None else temperature
@@ -141,7 +150,7 @@ def fit_lights(
         raise ValueError(f"init must be finite light positions (L, 3), got shape {init.shape}")
     if method not in ("lm", "gd"):
         raise ValueError(f"method must be 'lm' or 'gd', got {method!r}")
-    steps = (0 if search and polish else 40) if steps is None else steps
+    steps = (0 if (search and polish) or reference is not None else 40) if steps is None else steps
     if not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ValueError(f"steps must be a whole number >= 0, got {steps!r}")
     image = np.asarray(image, np.float32)
@@ -161,13 +170,13 @@ def fit_lights(
             if searched.loss < hard_fit(image, scene, shadows, positions, ambient)[2]:
                 positions, intensities, a = searched.positions, searched.intensities, searched.ambient
                 trajectory.append(positions)
-    elif searched is not None:
-        intensities, a = searched.intensities, searched.ambient
+    elif searched is not None or reference is not None:  # (with a reference, the polish fits them)
+        intensities, a = (searched.intensities, searched.ambient) if searched is not None else (None, 0.0)
     else:
         intensities, a, _ = hard_fit(image, scene, shadows, positions, ambient)
     channels = (None, None)
     if polish:
-        polished = polish_lights(image, scene, camera, positions, ambient=ambient, mask=mask)
+        polished = polish_lights(image, scene, camera, positions, ambient=ambient, mask=mask, reference=reference)
         positions, intensities, a = polished.positions, polished.intensities, polished.ambient
         channels = (polished.channel_intensities, polished.channel_ambient)
         trajectory.append(positions)

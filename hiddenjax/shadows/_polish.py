@@ -29,8 +29,24 @@ several lights' valleys are coupled (moving one light along its ray is paid for 
 intensity), which moving one light at a time cannot follow. Then Nelder-Mead moves each light
 with the others held, which steps over the small-scale roughness that the finite footprint
 samples leave in the loss.
+
+**A textured table.** Where a surface's albedo differs from the scene's by an unknown factor
+`t(x)` (wood grain, a printed board), the photo is `y = t m` with `m` the model above. A
+reference photo `u` of the same view without the occluders is `u = t m0`, with `m0` the model of
+the scene without them (`h0` and `b0` the unshadowed direct image and its bounces), so
+
+    y = u m / m0,    m0 = sum_l I_l (h0_{p_l} + b0_{p_l}) + a,
+
+in which `t` cancels. For given `m0` this is the model above with every pixel weighted by the
+gain `g = u / m0`, linear in the intensities and the ambient; for given positions they and `g`
+are alternated (three non-negative solves, warm-started), and `g` moves with the candidate
+positions in both stages (the Jacobian has the term `-y dm0/dp / m0`). `g` is scaled to mean 1
+per channel: the texture is taken to average to the scene's albedo, which fixes the scale of the
+intensities. The first `m0` comes from a linear fit of the ratio
+`y / u ~ sum_l I_l h_l / h0_l + a` at the start.
 """
 
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -40,7 +56,7 @@ from ..scene import Camera, Scene
 from ..scene._sampling import cosine_directions
 from ..transport._build import _observed_pixels
 from ..transport._embree import RayCaster, primary_hits
-from ._search import _fit, check_outside, direct_images
+from ._search import _fit, check_outside, check_reference, direct_images, positive_reference
 
 
 class LightPolish(NamedTuple):
@@ -68,6 +84,7 @@ class _Footprints:
     """`S` stratified footprint points of every fitted pixel, and Embree to shade them."""
 
     def __init__(self, scene: Scene, camera: Camera, pixel_samples: int, mask, seed: int):
+        self.scene = scene
         self.caster = RayCaster(scene)
         hits, _ = primary_hits(self.caster, camera, pixel_samples, seed)
         self.pixels = _observed_pixels(scene, hits, (camera.height, camera.width), pixel_samples, mask, False)
@@ -76,85 +93,183 @@ class _Footprints:
         self.x = hits.position[sel] + self.caster.offset * hits.normal[sel]
         self.n, self.rho = hits.normal[sel], hits.albedo[sel]
 
-    def direct(self, p) -> np.ndarray:
-        """`(P,)` box-filtered direct image of a unit light at `p (3,)`, Embree visibility."""
-        return direct_images(self.caster, self.x, self.n, self.rho, p).reshape(-1, self.S).mean(axis=1)
+    @cached_property
+    def plain(self) -> RayCaster:
+        """Embree over the observed surfaces alone: the scene without its occluders (a reference photo's)."""
+        observed = [surface for surface in self.scene if surface.observe]
+        if len(observed) == len(list(self.scene)):
+            raise ValueError("a reference photo needs occluders to leave out: the scene has no surface with "
+                             "observe=False")
+        return RayCaster(Scene(observed))
 
-    def bounce(self, p, rays: int, seed: int, bounces: int = 1) -> np.ndarray:
+    def direct(self, p, plain: bool = False) -> np.ndarray:
+        """`(P,)` box-filtered direct image of a unit light at `p (3,)`, Embree visibility (`plain`:
+        without the occluders)."""
+        caster = self.plain if plain else self.caster
+        return direct_images(caster, self.x, self.n, self.rho, p).reshape(-1, self.S).mean(axis=1)
+
+    def bounce(self, p, rays: int, seed: int, bounces: int = 1, plain: bool = False) -> np.ndarray:
         """`(P,)` the diffuse interreflections of a unit light at `p`, up to `bounces` (1 or 2):
         `rays` cosine-distributed rays per footprint point; a second bounce follows one more
         cosine-distributed ray from each surface they hit (a path-traced estimate)."""
         rng = np.random.default_rng(seed)
         n, x = np.repeat(self.n, rays, axis=0), np.repeat(self.x, rays, axis=0)
-        radiance = self._outgoing(x, n, p, rng, bounces)
+        radiance = self._outgoing(self.plain if plain else self.caster, x, n, p, rng, bounces)
         return (np.repeat(self.rho, rays) * radiance).reshape(-1, self.S * rays).mean(axis=1)
 
-    def _outgoing(self, x, n, p, rng, bounces: int) -> np.ndarray:
+    def _outgoing(self, caster: RayCaster, x, n, p, rng, bounces: int) -> np.ndarray:
         """Radiance arriving at `x` along one cosine-distributed ray each, from surfaces lit directly
         and (`bounces - 1` times) indirectly. Cosine-distributed rays: `E = pi/K sum L`, so the
         reflected radiance is `rho/pi E = rho/K sum L`."""
-        hits = self.caster.intersect(x, cosine_directions(n, rng))
+        hits = caster.intersect(x, cosine_directions(n, rng))
         radiance = np.zeros(len(x))
         h = np.nonzero(hits.surface >= 0)[0]
-        z, nz, rho = hits.position[h] + self.caster.offset * hits.normal[h], hits.normal[h], hits.albedo[h]
-        radiance[h] = direct_images(self.caster, z, nz, rho, p)
+        z, nz, rho = hits.position[h] + caster.offset * hits.normal[h], hits.normal[h], hits.albedo[h]
+        radiance[h] = direct_images(caster, z, nz, rho, p)
         if bounces > 1:
-            radiance[h] += rho * self._outgoing(z, nz, p, rng, bounces - 1)
+            radiance[h] += rho * self._outgoing(caster, z, nz, p, rng, bounces - 1)
         return radiance
 
 
-def _fit_channels(columns: np.ndarray, Y: np.ndarray, ambient: bool):
-    """`_fit` per channel of `Y (P, C)`: `(I (L, C), a (C,), residual^2 summed over channels)`."""
-    fits = [_fit(columns, Y[:, c], ambient) for c in range(Y.shape[1])]
+def _fit_channels(columns: np.ndarray, Y: np.ndarray, ambient: bool, gain: np.ndarray | None = None):
+    """`_fit` per channel of `Y (P, C)`: `(I (L, C), a (C,), residual^2 summed over channels)`; `gain (P, C)`
+    multiplies the model of each pixel and channel (the albedo relative to the scene's), default 1."""
+    fits = [_fit(columns if gain is None else columns * gain[:, c, None], Y[:, c], ambient,
+                 None if gain is None else gain[:, c]) for c in range(Y.shape[1])]
     return np.stack([f[0] for f in fits], axis=1), np.array([f[1] for f in fits]), sum(f[2] for f in fits)
 
 
-def _levenberg_marquardt(column, chosen, columns, Y, ambient: bool, delta: float, tolerance: float, iterations: int):
-    """Joint steps on every light's position: `column(j, p) (P,)` is light `j`'s unit image at `p`
-    (`columns (P, L)` those at the start `chosen`), `Y (P, C)` the photo's channels, each with its
-    own intensities and ambient.
+class _Model:
+    """The polish's image model at the fitted pixels: each light's unit image (direct plus the bounces
+    computed at the start), and with a reference `U (P, C)` the same without the occluders, whose
+    ratio divides out each pixel's albedo (module docstring)."""
 
-    Returns `(positions, columns, evaluations)`; a step is taken only where it lowers the loss.
+    def __init__(self, feet: _Footprints, start, Y, ambient: bool, bounce: int, rays: int, seed: int, U=None):
+        self.feet, self.Y, self.ambient, self.U = feet, Y, ambient, U
+        self.extra = [feet.bounce(p, rays, seed + 1 + k, bounce) if bounce else 0.0 for k, p in enumerate(start)]
+        if U is not None:
+            self.plain_extra = [feet.bounce(p, rays, seed + 1 + k, bounce, plain=True) if bounce else 0.0
+                                for k, p in enumerate(start)]
+        self.guess = None
+
+    def images(self, j: int, p) -> tuple[np.ndarray, np.ndarray | None]:
+        """Light `j`'s unit image at `p` `(P,)`, and (with a reference) the one without the occluders."""
+        plain = self.feet.direct(p, plain=True) + self.plain_extra[j] if self.U is not None else None
+        return self.feet.direct(p) + self.extra[j], plain
+
+    def stack(self, positions) -> tuple[np.ndarray, np.ndarray | None]:
+        """`(P, L)` images of every light (and their plain images, or None)."""
+        pairs = [self.images(j, p) for j, p in enumerate(positions)]
+        plains = None if self.U is None else np.stack([q for _, q in pairs], axis=1)
+        return np.stack([h for h, _ in pairs], axis=1), plains
+
+    def fit(self, columns, plains):
+        """`(I (L, C), a (C,), residual^2, gain (P, C) or None)`: intensities and ambient by non-negative
+        least squares; with a reference, alternated with the gain `u / m0` until they agree (a few
+        linear solves, warm-started from the last fit)."""
+        if self.U is None:
+            return (*_fit_channels(columns, self.Y, self.ambient), None)
+        if self.guess is None:  # y / u ~ sum_l I_l h0_l / m0 V_l + a / m0
+            ratio, a, _ = _fit_channels(np.divide(columns, plains, out=np.zeros_like(plains), where=plains > 0),
+                                        self.Y / self.U, self.ambient)
+            self.guess = ratio / np.maximum(plains.mean(axis=0), 1e-300)[:, None], a
+        intensities, a = self.guess
+        for _ in range(3):
+            gain = _gain(self.U, plains, intensities, a)
+            intensities, a, rss = _fit_channels(columns, self.Y, self.ambient, gain)
+        self.guess = intensities, a
+        return intensities, a, rss, gain
+
+
+def _gain(U: np.ndarray, h0: np.ndarray, intensities: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """`(P, C)` each pixel's albedo relative to the scene's, `u / m0` with `m0 = h0 I + a` the model of the
+    view without the occluders (`h0 (P, L)`), scaled to mean 1 per channel."""
+    m0 = h0 @ intensities + a
+    m0 = np.maximum(m0, 1e-6 * np.maximum(np.abs(m0).max(axis=0), 1e-300))  # a negative black level: kept finite
+    g = U / m0
+    return g / g.mean(axis=0)
+
+
+def _levenberg_marquardt(model: _Model, chosen, columns, plains, delta: float, tolerance: float, iterations: int):
+    """Joint steps on every light's position from `chosen (L, 3)` (`columns`, `plains`: `model.stack` there).
+
+    Returns `(positions, columns, plains, evaluations)`; a step is taken only where it lowers the loss.
     """
-    chosen, columns = np.array(chosen, dtype=np.float64), columns.copy()  # the caller's stay as they are
-    L, ones = len(chosen), np.ones((len(Y), 1))
-    intensities, a, rss = _fit_channels(columns, Y, ambient)
+    chosen = np.array(chosen, dtype=np.float64)  # the caller's stays as it is
+    Y, ambient, L, ones = model.Y, model.ambient, len(chosen), np.ones((len(model.Y), 1))
+    intensities, a, rss, gain = model.fit(columns, plains)
     damping, evaluations = 1e-3, 0
     for _ in range(iterations):
-        dh = np.empty((len(Y), 3 * L))  # d h_j / d p_jk, central differences
+        dh = np.empty((len(Y), 3 * L))  # d h_j / d p_jk, central differences (and of the plain images)
+        dh0 = None if plains is None else np.empty((len(Y), 3 * L))
         for j in range(L):
             for k in range(3):
                 e = np.zeros(3)
                 e[k] = delta
-                dh[:, 3 * j + k] = (column(j, chosen[j] + e) - column(j, chosen[j] - e)) / (2 * delta)
+                (hp, h0p), (hm, h0m) = model.images(j, chosen[j] + e), model.images(j, chosen[j] - e)
+                dh[:, 3 * j + k] = (hp - hm) / (2 * delta)
+                if dh0 is not None:
+                    dh0[:, 3 * j + k] = (h0p - h0m) / (2 * delta)
         evaluations += 6 * L
-        A = np.concatenate([columns, ones], axis=1) if ambient else columns
         M, g = np.zeros((3 * L, 3 * L)), np.zeros(3 * L)
         for c in range(Y.shape[1]):
-            D = dh * np.repeat(intensities[:, c], 3)
-            r = Y[:, c] - A @ (np.append(intensities[:, c], a[c]) if ambient else intensities[:, c])
+            w = ones if gain is None else gain[:, c, None]
+            A = w * (np.concatenate([columns, ones], axis=1) if ambient else columns)
+            coefficients = np.append(intensities[:, c], a[c]) if ambient else intensities[:, c]
+            D = w * dh * np.repeat(intensities[:, c], 3)
+            if dh0 is not None:  # the gain u / m0 moves with the lights too
+                m0 = plains @ intensities[:, c] + a[c]
+                D -= (A @ coefficients / np.maximum(m0, 1e-300))[:, None] * dh0 * np.repeat(intensities[:, c], 3)
+            r = Y[:, c] - A @ coefficients
             J = D - A @ np.linalg.lstsq(A, D, rcond=None)[0]  # the intensities and ambient refit: projected out
             M, g = M + J.T @ J, g + J.T @ r
         while damping < 1e4:
             step = np.linalg.solve(M + damping * np.diag(np.diag(M) + 1e-30), g).reshape(L, 3)
             trial = chosen + step
-            trial_columns = np.stack([column(j, p) for j, p in enumerate(trial)], axis=1)
+            trial_columns, trial_plains = model.stack(trial)
             evaluations += L
-            fitted = _fit_channels(trial_columns, Y, ambient)
+            fitted = model.fit(trial_columns, trial_plains)
             if fitted[2] < rss:
-                chosen, columns, (intensities, a, rss) = trial, trial_columns, fitted
+                chosen, columns, plains, (intensities, a, rss, gain) = trial, trial_columns, trial_plains, fitted
                 damping = max(damping / 3, 1e-6)
                 break
             damping *= 4
         if damping >= 1e4 or np.max(np.abs(step)) < tolerance:
             break
-    return chosen, columns, evaluations
+    return chosen, columns, plains, evaluations
+
+
+def _nelder_mead(model: _Model, chosen, columns, plains, norm, tolerance, sweeps, step, max_evaluations):
+    """Nelder-Mead sweeps, each light in turn with the others held: `(positions, columns, plains, evaluations)`."""
+    chosen, columns = np.array(chosen, dtype=np.float64), columns.copy()
+    plains = None if plains is None else plains.copy()
+    evaluations = 0
+    for _ in range(sweeps):
+        for j in range(len(chosen)):
+
+            def loss(p, j=j):
+                nonlocal evaluations
+                evaluations += 1
+                h, h0 = model.images(j, p)
+                trial = np.concatenate([np.delete(columns, j, axis=1), h[:, None]], axis=1)
+                trial_plains = None if h0 is None else np.concatenate([np.delete(plains, j, axis=1), h0[:, None]], axis=1)
+                return model.fit(trial, trial_plains)[2] / norm
+
+            simplex = chosen[j] + np.concatenate([np.zeros((1, 3)), step * np.eye(3)])
+            found = scipy.optimize.minimize(loss, chosen[j], method="Nelder-Mead", options=dict(
+                initial_simplex=simplex, xatol=tolerance, fatol=1e-12, maxfev=max_evaluations))
+            chosen[j] = found.x
+            columns[:, j], h0 = model.images(j, found.x)
+            if plains is not None:
+                plains[:, j] = h0
+        step = step / 2
+    return chosen, columns, plains, evaluations
 
 
 def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_samples: int = 9, bounce: int = 2,
                   bounce_rays: int = 8, step: float = 0.005, tolerance: float = 2e-4, sweeps: int = 1,
                   max_evaluations: int = 300, delta: float = 0.008, iterations: int = 15, ambient: bool = True,
-                  mask=None, seed: int = 0) -> LightPolish:
+                  mask=None, seed: int = 0, reference=None) -> LightPolish:
     """Refine light positions against box-filtered Embree shadows plus two bounces (no gradient).
 
     **Arguments:**
@@ -175,6 +290,10 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
     - `sweeps`: Nelder-Mead's passes over the lights (each light in turn, the others held).
     - `max_evaluations`: per light and sweep.
     - `ambient`: fit a constant radiance beside the lights.
+    - `reference`: a photo of the same view without the occluders (the scene's surfaces with
+      `observe=False`), same shape as `image`, positive at the fitted pixels: the fit divides out
+      each pixel's albedo relative to the scene's (a textured table; module docstring). The
+      intensities are then in units of the scene's albedo, taken as the texture's mean.
 
     **Returns:** a `LightPolish`.
     """
@@ -194,6 +313,7 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
     image = np.asarray(image, np.float64)
     if image.shape[:2] != (camera.height, camera.width) or image.ndim not in (2, 3):
         raise ValueError(f"image shape {image.shape} does not match the camera {(camera.height, camera.width)}")
+    reference = check_reference(reference, image)
     feet = _Footprints(scene, camera, pixel_samples, mask, seed)
     Y = image.reshape(camera.height * camera.width, -1)[feet.pixels]
     if not np.all(np.isfinite(Y)):
@@ -202,31 +322,19 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
     if not norm > 0:
         raise ValueError("the image is black over the fitted pixels: there is nothing to fit")
 
-    extra = [feet.bounce(p, bounce_rays, seed + 1 + k, int(bounce)) if bounce else 0.0 for k, p in enumerate(start)]
-    column = lambda j, p: feet.direct(p) + extra[j]  # light j's unit image at p
-    start_columns = np.stack([column(j, p) for j, p in enumerate(start)], axis=1)
-    start_loss = _fit_channels(start_columns, Y, ambient)[2] / norm
-    chosen, columns, evaluations = _levenberg_marquardt(column, start, start_columns, Y, ambient, delta, tolerance,
-                                                        iterations)
-    evaluations += len(start)
-    for _ in range(sweeps):
-        for j in range(len(chosen)):
-            others = np.delete(columns, j, axis=1)
-
-            def loss(p, j=j, others=others):
-                nonlocal evaluations
-                evaluations += 1
-                return _fit_channels(np.concatenate([others, column(j, p)[:, None]], axis=1), Y, ambient)[2] / norm
-
-            simplex = chosen[j] + np.concatenate([np.zeros((1, 3)), step * np.eye(3)])
-            found = scipy.optimize.minimize(loss, chosen[j], method="Nelder-Mead", options=dict(
-                initial_simplex=simplex, xatol=tolerance, fatol=1e-12, maxfev=max_evaluations))
-            chosen[j] = found.x
-            columns[:, j] = column(j, found.x)
-        step = step / 2
-    intensities, a, rss = _fit_channels(columns, Y, ambient)
+    U = None if reference is None else positive_reference(
+        reference.reshape(camera.height * camera.width, -1)[feet.pixels])
+    model = _Model(feet, start, Y, ambient, int(bounce), bounce_rays, seed, U)
+    start_columns, start_plains = model.stack(start)
+    chosen, columns, plains, evaluations = _levenberg_marquardt(model, start, start_columns, start_plains, delta,
+                                                                tolerance, iterations)
+    chosen, columns, plains, more = _nelder_mead(model, chosen, columns, plains, norm, tolerance, sweeps, step,
+                                                 max_evaluations)
+    evaluations += more + len(start)
+    intensities, a, rss, gain = model.fit(columns, plains)
+    start_loss = model.fit(start_columns, start_plains)[2] / norm
     if rss / norm > start_loss:  # both stages only ever accept a lower loss: this guards rounding only
         chosen = start
-        intensities, a, rss = _fit_channels(start_columns, Y, ambient)
+        intensities, a, rss, gain = model.fit(start_columns, start_plains)
     return LightPolish(chosen, intensities.mean(axis=1), float(a.mean()), rss / norm, start_loss, evaluations,
                        intensities, a)

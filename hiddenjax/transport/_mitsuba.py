@@ -78,7 +78,9 @@ def upsample_for_mitsuba(envmap, factor: int = 8) -> np.ndarray:
 def _scene_dict(mi, scene: Scene, camera: Camera, folder: Path, integrator: dict) -> dict:
     """Mitsuba's scene dictionary for our surfaces (PLY files written to `folder`), camera and integrator.
 
-    Emitters are the caller's. Constant albedo and a centred pinhole camera with square pixels only.
+    Emitters are the caller's. Constant albedo or a grey texture (Mitsuba's bitmap, bilinear and
+    repeating as `Surface`'s; its rows are flipped: Mitsuba puts bitmap row 0 at `v = 0`, ours at
+    `v = 1`); a centred pinhole camera with square pixels only.
     """
     fx, fy, cx, cy = np.asarray(camera.intrinsics, dtype=np.float64)
     if not (np.isclose(fx, fy) and np.isclose(cx, camera.width / 2) and np.isclose(cy, camera.height / 2)):
@@ -87,16 +89,21 @@ def _scene_dict(mi, scene: Scene, camera: Camera, folder: Path, integrator: dict
     origin = np.asarray(camera.origin, dtype=np.float64)
     shapes = {}
     for k, surface in enumerate(scene):
-        if surface.albedo.ndim != 0:
-            raise ValueError("Mitsuba export supports constant albedo only")
+        if surface.albedo.ndim == 1:
+            raise ValueError("Mitsuba export supports a constant albedo or a texture, not per-face albedo")
+        if surface.albedo.ndim == 0:
+            reflectance = {"type": "rgb", "value": float(surface.albedo)}
+        else:
+            texture = np.repeat(np.asarray(surface.albedo, np.float32)[::-1, :, None], 3, axis=2)
+            reflectance = {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(texture)), "raw": True,
+                           "filter_type": "bilinear", "wrap_mode": "repeat"}
         path = folder / f"surface{k}.ply"
         surface.mesh.export(path)
         shapes[f"surface{k}"] = {
             "type": "ply", "filename": str(path), "face_normals": True,
             # two-sided, as hiddenjax's surfaces are (Embree's normal faces the ray): Mitsuba's diffuse
             # BSDF alone is black from behind, so a mesh wound inward (the teapot) would be black
-            "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb",
-                                                                                 "value": float(surface.albedo)}}},
+            "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": reflectance}},
         }
     return {
         "type": "scene",
@@ -116,7 +123,7 @@ class MitsubaRenderer:
     """A Mitsuba scene built from ours; `render(envmap, spp)` re-lights it without reloading meshes.
 
     `integrator` is Mitsuba's ('direct' to match `bounces=0`, 'path' with `max_depth` for global
-    illumination). Surfaces must have constant albedo; the camera must be a centred pinhole.
+    illumination). Surfaces must have a constant or textured albedo; the camera must be a centred pinhole.
     """
 
     def __init__(self, scene: Scene, camera: Camera, grid: EnvGrid, integrator: str = "direct",
@@ -153,7 +160,7 @@ def render_point_lights_mitsuba(scene: Scene, camera: Camera, lights, intensitie
     the direct term is `hj.render_point_lights`' `albedo/pi * I * cos / d^2`), its `path`
     integrator with `max_depth` (2: direct light only; 4: up to two diffuse interreflections, the
     table lighting the object and back), a box pixel filter. The channel mean of Mitsuba's RGB
-    is returned (grey albedo and white lights). Constant albedo and centred pinhole cameras only.
+    is returned (grey albedo and white lights). Constant or textured albedo and centred pinhole cameras only.
     """
     lights, intensities = check_lights(lights, intensities)
     mitsuba_variant()
