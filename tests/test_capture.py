@@ -39,23 +39,29 @@ def capture():
     return camera, base, image, panorama
 
 
-def test_outline_is_the_pixel_coverage_embree_sees(capture):
-    """`silhouette` (filled projected triangles) against the fraction of 64 footprint rays that hit the object."""
+@pytest.mark.parametrize("x", [0.0, 0.2])  # in the photo, and cut by its right edge
+def test_outline_is_the_pixel_coverage_embree_sees(capture, x):
+    """`silhouette` (filled projected triangles, over the object's bounding box) against the fraction
+    of 64 footprint rays that hit the object: the filled area within 1.2% at 4x supersampling
+    (measured 0.8-0.9%, OpenCV fills the fine pixels the outline touches) and 0.4% at 16x (0.2%)."""
     camera, base, _, _ = capture
-    mesh = photo.place(base, TRUE)
+    mesh = photo.place(base, photo.Placement(x, TRUE.z, TRUE.yaw))
     origin, directions = camera.primary_rays(64, seed=0)
     hit = RayCaster(hj.Scene([hj.Surface(mesh)])).first_surface(
         np.broadcast_to(origin, directions.reshape(-1, 3).shape), directions.reshape(-1, 3))
     coverage = (hit >= 0).reshape(HEIGHT, WIDTH, 64).mean(axis=-1)
-    outline = photo.silhouette(mesh, camera)
-    assert abs(outline.sum() / coverage.sum() - 1) < 0.01
-    assert np.abs(outline - coverage).sum() < 0.05 * coverage.sum()
+    assert (coverage[:, -1] > 0).any() == (x > 0)
+    for supersample, tolerance in ((4, 0.012), (16, 0.004)):
+        outline = photo.silhouette(mesh, camera, supersample)
+        assert abs(outline.sum() / coverage.sum() - 1) < tolerance
+        assert np.abs(outline - coverage).sum() < 0.05 * coverage.sum()
 
 
 def test_refinement_moves_the_object_to_its_place(capture):
     """Target: position within 2 mm and yaw within 1 degree, from 11 mm and 10 degrees off, on the
     board pose's camera: the overlap with the object's dark pixels meets it, the photo's edges
-    then take the object closer (0.5 mm, 0.5 degrees)."""
+    then take the object closer (0.5 mm, 0.5 degrees; measured 1.16 mm, 0.45 degrees and 0.22 mm,
+    0.03 degrees)."""
     camera, base, image, _ = capture
     pose = photo.board_pose(BOARD, image, lens())
     cam = pose.camera()
