@@ -14,6 +14,7 @@
                           (--intrinsics camera.toml | --fov DEG) [--times T...] -o out/
     hiddenjax video A.npz clip.mp4 -o maps/ [--background median|first] [--video maps.mp4]
     hiddenjax design -o out/ [--quick] [--objective a_optimal|d_optimal|expected_error|reconstruction]
+                     [--shape heightfield|boxes] [--boxes K]
                      [--steps N] [--footprint M] [--height M] [--controls G] [--seed S] [--grid H W]
                      [--skies PANORAMA...]
 
@@ -368,10 +369,13 @@ DESIGN_SUNS = ((0.5, 1.0), (0.9, 3.0), (1.2, 5.0), (0.3, 2.0), (1.0, 0.3), (0.7,
 
 
 def design(args) -> dict:
-    """`hiddenjax design`: optimize a height-field occluder, check it with hard shadows, write the STL."""
+    """`hiddenjax design`: optimize a printable occluder, check it with hard shadows, write the STL."""
     out = _output_folder(args.out)
-    shape = _design.HeightField(footprint=args.footprint, height=args.height, plate=args.plate,
-                                controls=args.controls, resolution=2 * args.controls - 1)
+    if args.shape == "boxes":
+        shape = _design.Boxes(footprint=args.footprint, height=args.height, plate=args.plate, count=args.boxes)
+    else:
+        shape = _design.HeightField(footprint=args.footprint, height=args.height, plate=args.plate,
+                                    controls=args.controls, resolution=2 * args.controls - 1)
     steps = args.steps if args.steps is not None else (25 if args.quick else 80)
     if steps < 1:
         raise ValueError(f"--steps must be at least 1, got {steps}")
@@ -420,8 +424,9 @@ def design(args) -> dict:
                         f"{min(scores[k] for k in DESIGN_FIXTURES):.4g}")
     best = min((scores[k], k) for k in DESIGN_FIXTURES)
     results = dict(
-        config=dict(quick=args.quick, objective=args.objective, steps=steps, footprint=args.footprint,
-                    height=args.height, plate=args.plate, controls=args.controls, image=size, grid=list(grid.shape),
+        config=dict(quick=args.quick, objective=args.objective, shape=args.shape, steps=steps, footprint=args.footprint,
+                    height=args.height, plate=args.plate, controls=args.controls, boxes=args.boxes, image=size,
+                    grid=list(grid.shape),
                     seed=args.seed, skies=[str(p) for p in args.skies] if args.skies else "procedural"),
         seconds=round(result.seconds, 1),
         history=[float(v) for v in result.history],
@@ -430,7 +435,8 @@ def design(args) -> dict:
         # 1 - design / best fixture; for D-optimal the ratio of the determinants, exp(difference of log-dets).
         improvement_over_best_fixture=1 - (scores["design"] / best[0] if args.objective != "d_optimal"
                                            else float(np.exp(scores["design"] - best[0]))),
-        mesh=dict(watertight=bool(mesh.is_watertight), volume_cm3=float(mesh.volume * 1e6),
+        mesh=dict(watertight=bool(mesh.is_watertight),
+                  volume_cm3=float((shape.volume(result.theta) if args.shape == "boxes" else mesh.volume) * 1e6),
                   bounds=np.asarray(mesh.bounds).round(6).tolist()),
     )
     io.write_text(out / "design.json", json.dumps(results, indent=2))
@@ -708,7 +714,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--footprint", type=float, default=0.1, help="side of the square base in metres (default 0.1)")
     p.add_argument("--height", type=float, default=0.1, help="largest height in metres, at most the footprint (default 0.1)")
     p.add_argument("--plate", type=float, default=0.005, help="base plate thickness in metres (default 0.005)")
+    p.add_argument("--shape", default="heightfield", choices=("heightfield", "boxes"),
+                   help="a height field on a base plate, or a union of boxes on it (default heightfield)")
     p.add_argument("--controls", type=int, default=5, help="height parameters per side (default 5)")
+    p.add_argument("--boxes", type=int, default=9, help="how many boxes with --shape boxes (default 9)")
     p.add_argument("--seed", type=int, default=0, help="random start (default 0)")
     p.add_argument("--grid", type=int, nargs=2, default=(8, 16), metavar=("H", "W"),
                    help="env grid the objective is computed on (default 8 16; 16 32 for 'reconstruction')")

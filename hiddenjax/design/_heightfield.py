@@ -21,6 +21,16 @@ import trimesh
 from jaxtyping import Array, Float
 
 
+def check_base(footprint: float, height: float, plate: float):
+    """A printable shape's bounds: a positive footprint, and `0 < plate < height <= footprint`."""
+    if not (np.isfinite(footprint) and footprint > 0):
+        raise ValueError(f"footprint must be positive metres, got {footprint}")
+    if not (0 < plate < height <= footprint):
+        raise ValueError(
+            f"need 0 < plate < height <= footprint (metres), got plate={plate}, height={height}, "
+            f"footprint={footprint}: a taller design needs a larger footprint")
+
+
 class HeightField(eqx.Module):
     """A height field on a square base plate, parameterized by `controls x controls` unbounded values.
 
@@ -36,12 +46,7 @@ class HeightField(eqx.Module):
     resolution: int = eqx.field(static=True, default=9)
 
     def __check_init__(self):
-        if not (np.isfinite(self.footprint) and self.footprint > 0):
-            raise ValueError(f"footprint must be positive metres, got {self.footprint}")
-        if not (0 < self.plate < self.height <= self.footprint):
-            raise ValueError(
-                f"need 0 < plate < height <= footprint (metres), got plate={self.plate}, height={self.height}, "
-                f"footprint={self.footprint}: a taller design needs a larger footprint")
+        check_base(self.footprint, self.height, self.plate)
         if self.controls < 2 or self.resolution < self.controls:
             raise ValueError(f"need 2 <= controls <= resolution, got controls={self.controls}, "
                              f"resolution={self.resolution}")
