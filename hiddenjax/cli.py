@@ -14,7 +14,7 @@
                           (--intrinsics camera.toml | --fov DEG) [--times T...] -o out/
     hiddenjax video A.npz clip.mp4 -o maps/ [--background median|first] [--video maps.mp4]
     hiddenjax design -o out/ [--quick] [--objective a_optimal|d_optimal|expected_error|reconstruction]
-                     [--shape heightfield|boxes] [--boxes K]
+                     [--shape heightfield|boxes|cylinders] [--count K] [--temperature START END]
                      [--steps N] [--footprint M] [--height M] [--controls G] [--seed S] [--grid H W]
                      [--skies PANORAMA...]
 
@@ -371,14 +371,18 @@ DESIGN_SUNS = ((0.5, 1.0), (0.9, 3.0), (1.2, 5.0), (0.3, 2.0), (1.0, 0.3), (0.7,
 def design(args) -> dict:
     """`hiddenjax design`: optimize a printable occluder, check it with hard shadows, write the STL."""
     out = _output_folder(args.out)
-    if args.shape == "boxes":
-        shape = _design.Boxes(footprint=args.footprint, height=args.height, plate=args.plate, count=args.boxes)
+    if args.shape in ("boxes", "cylinders"):
+        kind = _design.Boxes if args.shape == "boxes" else _design.Cylinders
+        shape = kind(footprint=args.footprint, height=args.height, plate=args.plate, count=args.count)
     else:
         shape = _design.HeightField(footprint=args.footprint, height=args.height, plate=args.plate,
                                     controls=args.controls, resolution=2 * args.controls - 1)
     steps = args.steps if args.steps is not None else (25 if args.quick else 80)
     if steps < 1:
         raise ValueError(f"--steps must be at least 1, got {steps}")
+    t0, t1 = args.temperature
+    if not (0 < t0 <= t1 and np.isfinite(t1)):
+        raise ValueError(f"--temperature takes START END in 1/m with 0 < START <= END, got {t0:g} {t1:g}")
     size = 20 if args.quick else 32
     grid = EnvGrid(*args.grid)
     if args.skies:
@@ -392,7 +396,8 @@ def design(args) -> dict:
         if not args.quiet and (k % 10 == 0 or k == steps - 1):
             print(f"step {k:3d}  T {temperature:7.1f}  objective {value:.5g}", flush=True)
 
-    result = _design.design_occluder(problem, steps, key=jax.random.key(args.seed), callback=progress)
+    result = _design.design_occluder(problem, steps, key=jax.random.key(args.seed), callback=progress,
+                                     temperatures=(t0, t1))
     mesh = result.mesh()
     out.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(out / "design.stl") as tmp:
@@ -425,7 +430,8 @@ def design(args) -> dict:
     best = min((scores[k], k) for k in DESIGN_FIXTURES)
     results = dict(
         config=dict(quick=args.quick, objective=args.objective, shape=args.shape, steps=steps, footprint=args.footprint,
-                    height=args.height, plate=args.plate, controls=args.controls, boxes=args.boxes, image=size,
+                    height=args.height, plate=args.plate, controls=args.controls, count=args.count,
+                    temperature=list(args.temperature), image=size,
                     grid=list(grid.shape),
                     seed=args.seed, skies=[str(p) for p in args.skies] if args.skies else "procedural"),
         seconds=round(result.seconds, 1),
@@ -436,7 +442,7 @@ def design(args) -> dict:
         improvement_over_best_fixture=1 - (scores["design"] / best[0] if args.objective != "d_optimal"
                                            else float(np.exp(scores["design"] - best[0]))),
         mesh=dict(watertight=bool(mesh.is_watertight),
-                  volume_cm3=float((shape.volume(result.theta) if args.shape == "boxes" else mesh.volume) * 1e6),
+                  volume_cm3=float((mesh.volume if args.shape == "heightfield" else shape.volume(result.theta)) * 1e6),
                   bounds=np.asarray(mesh.bounds).round(6).tolist()),
     )
     io.write_text(out / "design.json", json.dumps(results, indent=2))
@@ -714,10 +720,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--footprint", type=float, default=0.1, help="side of the square base in metres (default 0.1)")
     p.add_argument("--height", type=float, default=0.1, help="largest height in metres, at most the footprint (default 0.1)")
     p.add_argument("--plate", type=float, default=0.005, help="base plate thickness in metres (default 0.005)")
-    p.add_argument("--shape", default="heightfield", choices=("heightfield", "boxes"),
-                   help="a height field on a base plate, or a union of boxes on it (default heightfield)")
+    p.add_argument("--shape", default="heightfield", choices=("heightfield", "boxes", "cylinders"),
+                   help="a height field on a base plate, or a union of boxes or cylinders on it (default heightfield)")
     p.add_argument("--controls", type=int, default=5, help="height parameters per side (default 5)")
-    p.add_argument("--boxes", type=int, default=9, help="how many boxes with --shape boxes (default 9)")
+    p.add_argument("--count", type=int, default=9, help="how many boxes or cylinders (default 9)")
+    p.add_argument("--temperature", type=float, nargs=2, default=(30.0, 300.0), metavar=("START", "END"),
+                   help="the soft shadows' sharpness, annealed from START to END, 1/m (default 30 300)")
     p.add_argument("--seed", type=int, default=0, help="random start (default 0)")
     p.add_argument("--grid", type=int, nargs=2, default=(8, 16), metavar=("H", "W"),
                    help="env grid the objective is computed on (default 8 16; 16 32 for 'reconstruction')")

@@ -206,8 +206,9 @@ def test_demo_quick(tmp_path):
         (("--controls", "1"), "controls"),
         (("--steps", "0"), "--steps must be at least 1"),
         (("--footprint", "-1"), "footprint must be positive"),
-        (("--shape", "boxes", "--boxes", "0"), "count must be a positive integer"),
+        (("--shape", "cylinders", "--count", "0"), "count must be a positive integer"),
         (("--shape", "boxes", "--height", "0.2"), "plate < height <= footprint"),
+        (("--temperature", "300", "30"), "0 < START <= END"),
     ],
 )
 def test_design_bad_input_one_line_no_output(tmp_path, capsys, args, words):

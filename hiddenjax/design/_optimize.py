@@ -22,7 +22,7 @@ from jaxtyping import Array, Float
 from ..scene import Camera, EnvGrid, Scene, Surface, object_on_plane
 from ..shadows import Occluder, SoftTransport
 from ..transport import transport_matrix
-from ._boxes import Boxes
+from ._unions import Boxes, Cylinders
 from ._heightfield import HeightField
 from ._objectives import Objective
 
@@ -42,12 +42,12 @@ def stage(mesh: trimesh.Trimesh, footprint: float, *, width: int = 32, height: i
 class DesignProblem(eqx.Module):
     """A shape, the stage's soft transport and an objective: `loss(theta, temperature)`.
 
-    **Fields:** `shape` (`HeightField` or `Boxes`), `soft` the plane's footprint points and direction
+    **Fields:** `shape` (`HeightField`, `Boxes` or `Cylinders`), `soft` the plane's footprint points and direction
     samples, `plane` the plane's triangles, `index`/`surface` the clustering of plane + design
     triangles (`Occluder.clusters`), `objective`; `camera`, `grid`.
     """
 
-    shape: HeightField | Boxes
+    shape: HeightField | Boxes | Cylinders
     soft: SoftTransport
     plane: Float[Array, "F0 3 3"]
     index: Array
@@ -58,7 +58,7 @@ class DesignProblem(eqx.Module):
     elevation: float = eqx.field(static=True)
 
     @classmethod
-    def build(cls, shape: HeightField | Boxes, grid: EnvGrid, *, kind: str = "a_optimal", width: int = 32,
+    def build(cls, shape: HeightField | Boxes | Cylinders, grid: EnvGrid, *, kind: str = "a_optimal", width: int = 32,
               height: int = 32, samples: int = 2, elevation: float = 90.0, prior=None, band="upper", skies=None,
               noise: float = 0.01, seed: int = 0) -> "DesignProblem":
         """Cast the stage's footprint rays (Embree) and fix the objective's prior on the bare plane.
@@ -133,7 +133,7 @@ class Design(eqx.Module):
     time, `shape` the parameterization (`design.mesh()` is the printable solid).
     """
 
-    shape: HeightField | Boxes
+    shape: HeightField | Boxes | Cylinders
     theta: Float[Array, "..."]
     history: np.ndarray
     temperatures: np.ndarray
