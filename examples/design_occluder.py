@@ -37,7 +37,7 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="small configuration (about two minutes)")
     parser.add_argument("--objective", default="reconstruction", choices=hj.design.KINDS)
     parser.add_argument("--shape", default="heightfield", choices=("heightfield", "boxes", "cylinders"))
-    parser.add_argument("--temperature", type=float, nargs=2, default=(30.0, 300.0), metavar=("START", "END"))
+    parser.add_argument("--temperature", type=float, nargs=2, default=(30.0, 3000.0), metavar=("START", "END"))
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
 

@@ -724,8 +724,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="a height field on a base plate, or a union of boxes or cylinders on it (default heightfield)")
     p.add_argument("--controls", type=int, default=5, help="height parameters per side (default 5)")
     p.add_argument("--count", type=int, default=9, help="how many boxes or cylinders (default 9)")
-    p.add_argument("--temperature", type=float, nargs=2, default=(30.0, 300.0), metavar=("START", "END"),
-                   help="the soft shadows' sharpness, annealed from START to END, 1/m (default 30 300)")
+    p.add_argument("--temperature", type=float, nargs=2, default=(30.0, 3000.0), metavar=("START", "END"),
+                   help="the soft shadows' sharpness, annealed from START to END, 1/m (default 30 3000)")
     p.add_argument("--seed", type=int, default=0, help="random start (default 0)")
     p.add_argument("--grid", type=int, nargs=2, default=(8, 16), metavar=("H", "W"),
                    help="env grid the objective is computed on (default 8 16; 16 32 for 'reconstruction')")
