@@ -170,9 +170,9 @@ def fit_lights(
             if searched.loss < hard_fit(image, scene, shadows, positions, ambient)[2]:
                 positions, intensities, a = searched.positions, searched.intensities, searched.ambient
                 trajectory.append(positions)
-    elif searched is not None or reference is not None:  # (with a reference, the polish fits them)
-        intensities, a = (searched.intensities, searched.ambient) if searched is not None else (None, 0.0)
-    else:
+    elif searched is not None:
+        intensities, a = searched.intensities, searched.ambient
+    elif reference is None:  # (with a reference the polish, which it requires, fits them)
         intensities, a, _ = hard_fit(image, scene, shadows, positions, ambient)
     channels = (None, None)
     if polish:

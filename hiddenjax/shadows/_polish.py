@@ -246,13 +246,15 @@ def _nelder_mead(model: _Model, chosen, columns, plains, norm, tolerance, sweeps
     evaluations = 0
     for _ in range(sweeps):
         for j in range(len(chosen)):
+            others = np.delete(columns, j, axis=1)
+            other_plains = None if plains is None else np.delete(plains, j, axis=1)
 
-            def loss(p, j=j):
+            def loss(p, j=j, others=others, other_plains=other_plains):
                 nonlocal evaluations
                 evaluations += 1
                 h, h0 = model.images(j, p)
-                trial = np.concatenate([np.delete(columns, j, axis=1), h[:, None]], axis=1)
-                trial_plains = None if h0 is None else np.concatenate([np.delete(plains, j, axis=1), h0[:, None]], axis=1)
+                trial = np.concatenate([others, h[:, None]], axis=1)
+                trial_plains = None if h0 is None else np.concatenate([other_plains, h0[:, None]], axis=1)
                 return model.fit(trial, trial_plains)[2] / norm
 
             simplex = chosen[j] + np.concatenate([np.zeros((1, 3)), step * np.eye(3)])
@@ -331,10 +333,10 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
     chosen, columns, plains, more = _nelder_mead(model, chosen, columns, plains, norm, tolerance, sweeps, step,
                                                  max_evaluations)
     evaluations += more + len(start)
-    intensities, a, rss, gain = model.fit(columns, plains)
+    intensities, a, rss, _ = model.fit(columns, plains)
     start_loss = model.fit(start_columns, start_plains)[2] / norm
     if rss / norm > start_loss:  # both stages only ever accept a lower loss: this guards rounding only
         chosen = start
-        intensities, a, rss, gain = model.fit(start_columns, start_plains)
+        intensities, a, rss, _ = model.fit(start_columns, start_plains)
     return LightPolish(chosen, intensities.mean(axis=1), float(a.mean()), rss / norm, start_loss, evaluations,
                        intensities, a)
