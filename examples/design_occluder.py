@@ -8,12 +8,12 @@ the three HDRIs it never saw: photos rendered by the independent path tracer wit
 the fixtures (teapot, sphere, coded aperture, each scaled into the same 10 cm cube) and the full
 10 cm block on the same stage, each solved with the default prior and scored by the tone-mapped
 SSIM of the upper hemisphere (`--shape boxes` or `cylinders`: a union of such solids on the base
-instead of the height field). Writes the CLI's files (design.stl, design.png, objective.png,
+instead of the height field; `--shape voxels`: a voxel grid above it, with holes and overhangs). Writes the CLI's files (design.stl, design.png, objective.png,
 design.json), a contact sheet per held-back HDRI and results.json. `--objective` picks another
 objective (the Gaussian ones need no skies).
 
-    python examples/design_occluder.py [--quick] [--out DIR] [--objective ...] [--shape heightfield|boxes|cylinders]
-                                       [--temperature START END]
+    python examples/design_occluder.py [--quick] [--out DIR] [--objective ...] [--shape heightfield|boxes|cylinders|voxels]
+                                       [--temperature START END] [--controls N] [--cells N] [--steps N]
 """
 
 import argparse
@@ -36,16 +36,21 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out/design_occluder"))
     parser.add_argument("--quick", action="store_true", help="small configuration (about two minutes)")
     parser.add_argument("--objective", default="reconstruction", choices=hj.design.KINDS)
-    parser.add_argument("--shape", default="heightfield", choices=("heightfield", "boxes", "cylinders"))
-    parser.add_argument("--temperature", type=float, nargs=2, default=(30.0, 3000.0), metavar=("START", "END"))
+    parser.add_argument("--shape", default="heightfield", choices=("heightfield", "boxes", "cylinders", "voxels"))
+    parser.add_argument("--controls", type=int, default=5, help="the height field's parameters per side")
+    parser.add_argument("--cells", type=int, default=10, help="voxels across the footprint (--shape voxels)")
+    parser.add_argument("--steps", type=int, default=40, help="Adam steps (8 with --quick)")
+    parser.add_argument("--temperature", type=float, nargs=2, metavar=("START", "END"),
+                        help="the command's default: 30 3000, 30 30000 for voxels")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
 
     train, held_back = (NAMES[:1], NAMES[4:6]) if args.quick else (NAMES[:4], NAMES[4:])
     command = ["design", "-o", str(args.out), "--objective", args.objective, "--shape", args.shape,
-               "--temperature", *map(str, args.temperature),
+               "--controls", str(args.controls), "--cells", str(args.cells),
                "--skies", *[str(HDRI / f"{name}.hdr") for name in train]]
-    command += ["--quick", "--steps", "8"] if args.quick else ["--grid", "16", "32", "--steps", "40"]
+    command += ["--temperature", *map(str, args.temperature)] if args.temperature else []
+    command += ["--quick", "--steps", "8"] if args.quick else ["--grid", "16", "32", "--steps", str(args.steps)]
     if hiddenjax_command(command) != 0:
         raise SystemExit("hiddenjax design failed")
     designed = json.loads((args.out / "design.json").read_text())
@@ -74,8 +79,9 @@ def main(argv=None):
     print(f"{'occluder':>15} {'objective (hard)':>17} {'ssim_tm':>8} {'ssim':>6} {'relrmse':>8}")
     for name, obj, tm, ssim, rel in rows:
         print(f"{name:>15} {obj:17.4g} {tm:8.3f} {ssim:6.3f} {rel:8.3f}")
-    results = dict(config=dict(quick=args.quick, objective=args.objective, shape=args.shape,
-                               temperature=list(args.temperature), trained_on=list(train),
+    results = dict(config=dict(quick=args.quick, objective=args.objective, shape=args.shape, controls=args.controls,
+                               cells=args.cells, steps=8 if args.quick else args.steps,
+                               temperature=designed["config"]["temperature"], trained_on=list(train),
                                held_back=list(names),
                                image=size,
                                grid=list(grid.shape), photo_samples=samples),

@@ -374,13 +374,20 @@ def design(args) -> dict:
     if args.shape in ("boxes", "cylinders"):
         kind = _design.Boxes if args.shape == "boxes" else _design.Cylinders
         shape = kind(footprint=args.footprint, height=args.height, plate=args.plate, count=args.count)
+    elif args.shape == "voxels":
+        shape = _design.Voxels(footprint=args.footprint, height=args.height, plate=args.plate, cells=args.cells)
     else:
         shape = _design.HeightField(footprint=args.footprint, height=args.height, plate=args.plate,
                                     controls=args.controls, resolution=2 * args.controls - 1)
     steps = args.steps if args.steps is not None else (25 if args.quick else 80)
     if steps < 1:
         raise ValueError(f"--steps must be at least 1, got {steps}")
-    t0, t1 = args.temperature
+    # Voxels are cheap per direction (a gather per ray): more directions per cell, less fitting to the sample.
+    samples = args.samples if args.samples is not None else (8 if args.shape == "voxels" else 2)
+    if samples < 1:
+        raise ValueError(f"--samples must be at least 1 direction per cell, got {samples}")
+    # Voxels end sharper: at 3000/m a voxel with |theta| < 0.05 is still grey (module docstring).
+    t0, t1 = args.temperature or ((30.0, 30000.0) if args.shape == "voxels" else (30.0, 3000.0))
     if not (0 < t0 <= t1 and np.isfinite(t1)):
         raise ValueError(f"--temperature takes START END in 1/m with 0 < START <= END, got {t0:g} {t1:g}")
     size = 20 if args.quick else 32
@@ -390,7 +397,7 @@ def design(args) -> dict:
     else:
         skies = np.stack([grid.downsample(procedural_sky(64, 128, sun=sun, seed=k)) for k, sun in enumerate(DESIGN_SUNS)])
     problem = _design.DesignProblem.build(shape, grid, kind=args.objective, width=size, height=size, skies=skies,
-                                          seed=args.seed)
+                                          samples=samples, seed=args.seed)
 
     def progress(k, value, temperature):
         if not args.quiet and (k % 10 == 0 or k == steps - 1):
@@ -431,7 +438,8 @@ def design(args) -> dict:
     results = dict(
         config=dict(quick=args.quick, objective=args.objective, shape=args.shape, steps=steps, footprint=args.footprint,
                     height=args.height, plate=args.plate, controls=args.controls, count=args.count,
-                    temperature=list(args.temperature), image=size,
+                    cells=args.cells, samples=samples,
+                    temperature=[t0, t1], image=size,
                     grid=list(grid.shape),
                     seed=args.seed, skies=[str(p) for p in args.skies] if args.skies else "procedural"),
         seconds=round(result.seconds, 1),
@@ -706,9 +714,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(run=demo)
 
-    p = sub.add_parser("design", help="optimize a printable occluder (height field) for the lowest reconstruction error",
-                       description="Designing the object camera: a height field on a square base plate, optimized "
-                                   "through the soft shadow transport for an objective under the default prior "
+    p = sub.add_parser("design", help="optimize a printable occluder for the lowest reconstruction error",
+                       description="Designing the object camera: a height field, boxes, cylinders or voxels on a "
+                                   "square base plate, optimized through the soft shadow transport for an objective under the default prior "
                                    "(A-optimal, D-optimal, expected error over skies, or the default solve's "
                                    "reconstruction error over skies), "
                                    "then checked with Embree's hard shadows against the bundled fixtures. Writes "
@@ -720,12 +728,18 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--footprint", type=float, default=0.1, help="side of the square base in metres (default 0.1)")
     p.add_argument("--height", type=float, default=0.1, help="largest height in metres, at most the footprint (default 0.1)")
     p.add_argument("--plate", type=float, default=0.005, help="base plate thickness in metres (default 0.005)")
-    p.add_argument("--shape", default="heightfield", choices=("heightfield", "boxes", "cylinders"),
-                   help="a height field on a base plate, or a union of boxes or cylinders on it (default heightfield)")
+    p.add_argument("--shape", default="heightfield", choices=("heightfield", "boxes", "cylinders", "voxels"),
+                   help="a height field on a base plate, a union of boxes or cylinders on it, or a voxel grid "
+                        "above it (holes and overhangs; default heightfield)")
     p.add_argument("--controls", type=int, default=5, help="height parameters per side (default 5)")
     p.add_argument("--count", type=int, default=9, help="how many boxes or cylinders (default 9)")
-    p.add_argument("--temperature", type=float, nargs=2, default=(30.0, 3000.0), metavar=("START", "END"),
-                   help="the soft shadows' sharpness, annealed from START to END, 1/m (default 30 3000)")
+    p.add_argument("--cells", type=int, default=10,
+                   help="voxels across each side of the footprint, and about as many layers (default 10)")
+    p.add_argument("--samples", type=int,
+                   help="directions per env cell the optimization sees (default 2; 8 for voxels)")
+    p.add_argument("--temperature", type=float, nargs=2, metavar=("START", "END"),
+                   help="the soft shadows' sharpness, annealed from START to END, 1/m (default 30 3000; "
+                        "30 30000 for voxels)")
     p.add_argument("--seed", type=int, default=0, help="random start (default 0)")
     p.add_argument("--grid", type=int, nargs=2, default=(8, 16), metavar=("H", "W"),
                    help="env grid the objective is computed on (default 8 16; 16 32 for 'reconstruction')")

@@ -78,8 +78,7 @@ def relrmse(a, b):
 
 def hard_on_the_same_samples(scene, st):
     """The estimator of `SoftTransport.matrix` with Embree's hard visibility on the same directions."""
-    rec = st.receivers
-    x = np.stack([np.asarray(rec.scatter(rec.points[..., i])) for i in range(3)], -1).astype(np.float64)
+    x = np.asarray(st.points(), np.float64)
     W = np.asarray(st.directions, np.float64)
     (J, K, _), Q = W.shape, len(x)
     V = ~RayCaster(scene).occluded(np.repeat(x, J * K, axis=0), np.tile(W.reshape(-1, 3), (Q, 1))).reshape(Q, J, K)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
 import hiddenjax as hj
 from hiddenjax.cli import main
@@ -208,6 +209,8 @@ def test_demo_quick(tmp_path):
         (("--footprint", "-1"), "footprint must be positive"),
         (("--shape", "cylinders", "--count", "0"), "count must be a positive integer"),
         (("--shape", "boxes", "--height", "0.2"), "plate < height <= footprint"),
+        (("--shape", "voxels", "--cells", "0"), "cells must be a positive integer"),
+        (("--shape", "voxels", "--samples", "0"), "--samples must be at least 1"),
         (("--temperature", "300", "30"), "0 < START <= END"),
     ],
 )
@@ -216,6 +219,19 @@ def test_design_bad_input_one_line_no_output(tmp_path, capsys, args, words):
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and words in lines[0] and lines[0].startswith("hiddenjax design: error:")
     assert not (tmp_path / "out").exists()
+
+
+def test_design_voxels_end_to_end(tmp_path):
+    """`hiddenjax design --shape voxels --quick`: the voxel defaults (8 directions, 30 to 30000/m),
+    a watertight STL inside the 10 cm cube, every fixture scored on the hard check."""
+    assert main(["design", "-o", str(tmp_path), "--quick", "--shape", "voxels", "--cells", "4", "--steps", "2",
+                 "-q"]) == 0
+    results = json.loads((tmp_path / "design.json").read_text())
+    assert results["config"]["samples"] == 8 and results["config"]["temperature"] == [30.0, 30000.0]
+    assert results["mesh"]["watertight"]
+    np.testing.assert_array_less(np.abs(results["mesh"]["bounds"]), 0.1 + 1e-9)
+    assert set(results["hard_objective"]) == {"design", "teapot", "sphere", "coded_aperture", "box"}
+    assert trimesh.load(tmp_path / "design.stl").is_watertight
 
 
 def test_lights_from_a_photo_of_a_scene_file(tmp_path, capsys):

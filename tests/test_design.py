@@ -144,6 +144,100 @@ def test_unions_gradient_and_soft_against_hard_shadows(union_problem, getkey):
     assert relrmse(soft, same_samples) < 0.015
 
 
+@pytest.fixture(scope="module")
+def voxel_problem():
+    """A 4x4x4 voxel grid on a 12x12-pixel stage, 4x8 grid."""
+    return hd.DesignProblem.build(hd.Voxels(cells=4, height=0.085), GRID, width=12, height=12, samples=2)
+
+
+def _tower_with_a_floating_voxel(shape):
+    """Binary values: a column in one corner, an overhanging arm from its top, and one voxel in the air."""
+    solid = np.zeros(shape.shape, bool)
+    solid[0, :, 0] = True
+    solid[1:3, -1, 0] = True  # an overhang: hangs from the column's top, nothing under it
+    solid[3, 1, 3] = True  # floating: not face-connected to the plate
+    return solid, jnp.where(jnp.asarray(solid), 3.0, -3.0)
+
+
+def test_voxels_are_watertight_printable_and_exact_in_volume():
+    shape = hd.Voxels(footprint=0.08, height=0.064, plate=0.004, cells=4)
+    assert shape.layers == 3  # (0.064 - 0.004) / (0.08 / 4) voxels of 2 cm: cubes
+    solid, theta = _tower_with_a_floating_voxel(shape)
+    kept = shape.occupied(theta)
+    assert kept.sum() == solid.sum() - 1 and not kept[3, 1, 3] and kept[2, -1, 0]
+    mesh = shape.mesh(theta)
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.is_volume
+    np.testing.assert_allclose(mesh.bounds, [[-0.04, 0.0, -0.04], [0.04, 0.064, 0.04]], atol=1e-9)
+    # One closed outward surface: the volume is the plate plus 2 x 2 x 2 cm per kept voxel.
+    assert mesh.volume == pytest.approx(0.08 ** 2 * 0.004 + kept.sum() * 0.02 ** 3, rel=1e-9)
+    assert shape.volume(theta) == pytest.approx(mesh.volume, rel=1e-9)
+    # A voxel touching another along an edge only: one of the two empty cells by that edge is filled,
+    # so the surface stays manifold, also as an STL (which merges coincident vertices on loading).
+    solid[3, 0, 3] = True
+    solid[2, 1, 3] = True  # on [3, 0, 3] it rests by an edge only, and on the plate by nothing
+    solid[2, 0, 2] = True
+    solid[3, 1, 3] = False
+    edge = jnp.where(jnp.asarray(solid), 3.0, -3.0)
+    assert not shape.occupied(edge)[2, 1, 3]  # not face-connected to the plate: dropped
+    solid[2, 1, 2] = True  # now [2, 1, 3] hangs from [2, 1, 2], and touches [3, 0, 3] along an edge
+    edge = jnp.where(jnp.asarray(solid), 3.0, -3.0)
+    mesh = shape.mesh(edge)
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.is_volume
+    filled = shape.occupied(edge).sum() + 1
+    assert mesh.volume == pytest.approx(0.08 ** 2 * 0.004 + filled * 0.02 ** 3, rel=1e-9)
+    assert shape.volume(edge) == pytest.approx(mesh.volume, rel=1e-9)
+    reloaded = trimesh.load(trimesh.util.wrap_as_stream(mesh.export(file_type="stl")), file_type="stl")
+    assert reloaded.is_watertight and reloaded.volume == pytest.approx(mesh.volume, rel=1e-6)
+    # The connectivity penalty: zero for what hangs from the plate, positive with the floating voxel.
+    sharp = 1e5
+    lone = jnp.where(jnp.asarray(kept), 3.0, -3.0)
+    assert float(hd.Voxels(footprint=0.08, height=0.064, plate=0.004, cells=4, connect=1.0, smooth=0.0).penalty(lone, sharp)) < 1e-6
+    floating = float(hd.Voxels(footprint=0.08, height=0.064, plate=0.004, cells=4, connect=1.0, smooth=0.0).penalty(theta, sharp))
+    assert floating == pytest.approx(1 / 48, rel=1e-4)  # one voxel of 48, alpha 1 and c 0
+
+
+def test_voxels_reject_impossible_shapes():
+    with pytest.raises(ValueError, match="cells must be a positive integer"):
+        hd.Voxels(cells=0)
+    with pytest.raises(ValueError, match="layers must be a positive integer"):
+        hd.Voxels(layers=-2)
+    with pytest.raises(ValueError, match="connect must be a finite weight"):
+        hd.Voxels(connect=-1.0)
+    with pytest.raises(ValueError, match="smooth must be a finite weight"):
+        hd.Voxels(smooth=float("nan"))
+    with pytest.raises(ValueError, match="plate < height <= footprint"):
+        hd.Voxels(height=0.3)
+    with pytest.raises(ValueError, match="theta must have shape"):
+        hd.Voxels(cells=3).occupancy(jnp.zeros((4, 4, 4)), 100.0)
+
+
+def test_voxel_transport_is_the_hard_transport_of_its_solid(voxel_problem, getkey):
+    """Binary voxels (holes, overhangs): the transmittance model equals Embree's hard visibility on the
+    same samples (the plate included); grey voxels at a low temperature do not."""
+    problem = voxel_problem
+    solid, _ = _tower_with_a_floating_voxel(problem.shape)
+    solid[3, 1, 3] = False
+    solid[2:, 0, 2:] = True  # a second block with a tunnel under the arm's far end
+    theta = jnp.where(jnp.asarray(solid), 3.0, -3.0)
+    assert problem.shape.occupied(theta).sum() == solid.sum()
+    setup = hd.stage(problem.shape.mesh(theta), problem.shape.footprint, width=12, height=12)
+    same_samples = hard_on_the_same_samples(setup.scene, problem.soft)
+    matrix = eqx.filter_jit(lambda p, th, T: p.matrix(th, T))
+    assert relrmse(np.asarray(matrix(problem, theta, 1e5)), same_samples) < 1e-6
+    assert relrmse(np.asarray(matrix(problem, theta, 30.0)), same_samples) > 0.05
+    # The rays: every one crosses the voxels, in order of index, padded past the plate's index.
+    rays = np.asarray(problem.rays)
+    V = solid.size
+    assert rays.min() >= 0 and rays.max() == V + 1 and np.any(rays == V)
+
+
+def test_voxel_gradient_matches_finite_differences(voxel_problem, getkey):
+    """The log objective's derivative in the voxel values against central differences (the
+    penalty's bottleneck paths are piecewise linear: tested by value above)."""
+    theta = voxel_problem.shape.init(getkey())
+    check_gradient(voxel_problem, theta, jax.random.normal(getkey(), theta.shape))
+
+
 def _random_transport(key, P=60, N=GRID.size):
     A = jax.random.uniform(key, (P, N))
     return A.at[:, N // 2:].set(0.0)  # the lower hemisphere unseen, as on a plane

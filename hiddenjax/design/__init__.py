@@ -1,6 +1,6 @@
 """Designing the object camera (thesis 6.3): printable occluders optimized for the lowest reconstruction error.
 
-A parameterized shape (`HeightField`, `Boxes`, `Cylinders`), a stage and an objective (`Objective`: A-optimal,
+A parameterized shape (`HeightField`, `Boxes`, `Cylinders`, `Voxels`), a stage and an objective (`Objective`: A-optimal,
 D-optimal and expected error over skies of the Gaussian posterior, or the default solve's
 reconstruction error over skies) make a `DesignProblem`;
 `design_occluder` minimizes it through the differentiable soft transport, and `DesignProblem.score`
@@ -10,6 +10,7 @@ checks a mesh, designed or not, with Embree's hard visibility.
 from ._unions import Boxes as Boxes
 from ._unions import Cylinders as Cylinders
 from ._heightfield import HeightField as HeightField
+from ._voxels import Voxels as Voxels
 from ._objectives import KINDS as KINDS
 from ._objectives import Objective as Objective
 from ._optimize import Design as Design

@@ -24,6 +24,7 @@ from ..shadows import Occluder, SoftTransport
 from ..transport import transport_matrix
 from ._unions import Boxes, Cylinders
 from ._heightfield import HeightField
+from ._voxels import Voxels, voxel_rays, voxel_visibility
 from ._objectives import Objective
 
 LIFT = 1e-4  # of the footprint: how far `object_on_plane` (so `stage`) lifts an object off the plane
@@ -42,23 +43,25 @@ def stage(mesh: trimesh.Trimesh, footprint: float, *, width: int = 32, height: i
 class DesignProblem(eqx.Module):
     """A shape, the stage's soft transport and an objective: `loss(theta, temperature)`.
 
-    **Fields:** `shape` (`HeightField`, `Boxes` or `Cylinders`), `soft` the plane's footprint points and direction
-    samples, `plane` the plane's triangles, `index`/`surface` the clustering of plane + design
-    triangles (`Occluder.clusters`), `objective`; `camera`, `grid`.
+    **Fields:** `shape` (`HeightField`, `Boxes`, `Cylinders` or `Voxels`), `soft` the plane's footprint
+    points and direction samples, `plane` the plane's triangles, `index`/`surface` the clustering
+    of plane + design triangles (`Occluder.clusters`; empty for voxels), `rays` the voxels each
+    footprint ray crosses (`voxel_rays`; voxels only), `objective`; `camera`, `grid`.
     """
 
-    shape: HeightField | Boxes | Cylinders
+    shape: HeightField | Boxes | Cylinders | Voxels
     soft: SoftTransport
     plane: Float[Array, "F0 3 3"]
     index: Array
     surface: tuple[int, ...] = eqx.field(static=True)
+    rays: Array | None
     objective: Objective
     camera: Camera
     grid: EnvGrid
     elevation: float = eqx.field(static=True)
 
     @classmethod
-    def build(cls, shape: HeightField | Boxes | Cylinders, grid: EnvGrid, *, kind: str = "a_optimal", width: int = 32,
+    def build(cls, shape: HeightField | Boxes | Cylinders | Voxels, grid: EnvGrid, *, kind: str = "a_optimal", width: int = 32,
               height: int = 32, samples: int = 2, elevation: float = 90.0, prior=None, band="upper", skies=None,
               noise: float = 0.01, seed: int = 0) -> "DesignProblem":
         """Cast the stage's footprint rays (Embree) and fix the objective's prior on the bare plane.
@@ -71,12 +74,17 @@ class DesignProblem(eqx.Module):
         setup = stage(box, shape.footprint, width=width, height=height, elevation=elevation)
         soft = SoftTransport.from_scene(setup.scene, setup.camera, grid, samples=samples, seed=seed)
         plane = np.asarray(setup.scene[0].triangles, np.float32)
-        design = np.asarray(shape.triangles(shape.init(jax.random.key(0))), np.float32) + [0, LIFT * shape.footprint, 0]
-        index, surface = Occluder.clusters(np.concatenate([plane, design]),
-                                           np.r_[np.zeros(len(plane), int), np.ones(len(design), int)])
+        if isinstance(shape, Voxels):
+            index, surface = np.zeros(0, int), ()
+            rays = jnp.asarray(voxel_rays(shape, np.asarray(soft.points()), np.asarray(soft.directions)))
+        else:
+            design = np.asarray(shape.triangles(shape.init(jax.random.key(0))), np.float32) + [0, LIFT * shape.footprint, 0]
+            index, surface = Occluder.clusters(np.concatenate([plane, design]),
+                                               np.r_[np.zeros(len(plane), int), np.ones(len(design), int)])
+            rays = None
         objective = Objective.build(_bare_matrix(soft, plane), grid, kind, prior=prior, band=band, skies=skies,
                                     noise=noise)
-        return cls(shape, soft, jnp.asarray(plane), jnp.asarray(index), surface, objective, setup.camera, grid,
+        return cls(shape, soft, jnp.asarray(plane), jnp.asarray(index), surface, rays, objective, setup.camera, grid,
                    float(elevation))
 
     def bare_matrix(self) -> Float[Array, "P N"]:
@@ -89,11 +97,17 @@ class DesignProblem(eqx.Module):
         return Occluder.gather(jnp.concatenate([self.plane, design.astype(self.plane.dtype)]), self.index, self.surface)
 
     def matrix(self, theta, temperature) -> Float[Array, "P N"]:
-        """The soft transport `A(theta) (P, N)` at `temperature`."""
+        """The soft transport `A(theta) (P, N)` at `temperature` (voxels: their transmittance at `temperature`)."""
+        if isinstance(self.shape, Voxels):
+            return self.soft.assemble(voxel_visibility(self.shape, self.rays, theta, temperature))
         return self.soft.matrix(self.occluder(theta), temperature)
 
     def loss(self, theta, temperature) -> Float[Array, ""]:
         return self.objective(self.matrix(theta, temperature))
+
+    def penalty(self, theta, temperature) -> Float[Array, ""]:
+        """What the shape adds to the log-objective to stay printable (`Voxels.penalty`; 0 for the others)."""
+        return self.shape.penalty(theta, temperature) if isinstance(self.shape, Voxels) else jnp.zeros(())
 
     def hard_matrix(self, mesh: trimesh.Trimesh, samples: int = 16, pixel_samples: int = 4, seed: int = 0):
         """Embree's `TransportMatrix` of `mesh` (scaled to the footprint) on this stage: hard visibility."""
@@ -133,7 +147,7 @@ class Design(eqx.Module):
     time, `shape` the parameterization (`design.mesh()` is the printable solid).
     """
 
-    shape: HeightField | Boxes | Cylinders
+    shape: HeightField | Boxes | Cylinders | Voxels
     theta: Float[Array, "..."]
     history: np.ndarray
     temperatures: np.ndarray
@@ -149,9 +163,10 @@ def design_occluder(problem: DesignProblem, steps: int = 60, *, learning_rate: f
     """Minimize `problem.loss` over the shape parameters with Adam, annealing the temperature.
 
     The temperature runs geometrically from `temperatures[0]` to `[1]` (1/m) over the first 80%
-    of the steps and stays at the last one after; the log of the objective is minimized (its
-    scale spans decades). The default ends at 3000/m (soft edges about 0.3 mm wide): ending at
-    300/m, thin walls and fins that help the soft objective did not help under hard shadows
+    of the steps and stays at the last one after; `log(loss) + penalty` is minimized (the
+    objective's scale spans decades; `penalty` keeps voxels printable, 0 for the other shapes).
+    The default ends at 3000/m (soft edges about 0.3 mm wide): ending at 300/m, thin walls and
+    fins that help the soft objective did not help under hard shadows
     (docs/experiments/design.md). `theta0` defaults to `problem.shape.init(key)` (`key`
     defaults to `jax.random.key(0)`). `callback(step, value, temperature)` is called after each step.
     """
@@ -171,9 +186,13 @@ def design_occluder(problem: DesignProblem, steps: int = 60, *, learning_rate: f
 
     @eqx.filter_jit
     def step(problem, theta, state, temperature):
-        value, grad = jax.value_and_grad(lambda th: jnp.log(problem.loss(th, temperature)))(theta)
+        def log_loss(th):
+            value = problem.loss(th, temperature)
+            return jnp.log(value) + problem.penalty(th, temperature), value
+
+        (_, value), grad = jax.value_and_grad(log_loss, has_aux=True)(theta)
         updates, state = optimizer.update(grad, state, theta)
-        return optax.apply_updates(theta, updates), state, jnp.exp(value)
+        return optax.apply_updates(theta, updates), state, value
 
     state = optimizer.init(theta)
     history, best, best_value = [], theta, np.inf

@@ -120,7 +120,6 @@ class SoftTransport(eqx.Module):
         every step's residuals.
         """
         occ = self.occluder if occluder is None else occluder
-        P, S = self.pixels.shape[0], self.pixel_samples
 
         def visibility(w):
             light = jnp.concatenate([w, jnp.zeros(1, w.dtype)])
@@ -129,15 +128,38 @@ class SoftTransport(eqx.Module):
 
         def column(args):
             w, omega, closed, above, straddle = args
-            V = jax.lax.map(visibility, w).T  # (Q, K)
-            cos = self.normals @ w.T
-            scale = omega / w.shape[0]
-            E = jnp.where(above, closed - scale * jnp.sum((1 - V) * cos, axis=1),
-                          jnp.where(straddle, scale * jnp.sum(V * jnp.maximum(cos, 0.0), axis=1), 0.0))
-            return (self.albedo / jnp.pi * E).reshape(P, S).mean(axis=1)
+            return self._column(jax.lax.map(visibility, w).T, w, omega, closed, above, straddle)
 
-        cols = jax.lax.map(column, (self.directions, self.omega, self.closed.T, self.above.T, self.straddle.T))
-        return jnp.zeros((P, self.grid.size), cols.dtype).at[:, self.columns].set(cols.T)
+        return self._place(jax.lax.map(column, (self.directions, self.omega, self.closed.T, self.above.T,
+                                                self.straddle.T)))
+
+    def _place(self, cols: Float[Array, "J P"]) -> Float[Array, "P N"]:
+        """The columns of the env pixels in `columns`, zeros elsewhere."""
+        return jnp.zeros((self.pixels.shape[0], self.grid.size), cols.dtype).at[:, self.columns].set(cols.T)
+
+    def _column(self, V, w, omega, closed, above, straddle) -> Float[Array, " P"]:
+        """One env pixel's column from the visibility `V (Q, K)` of its `K` samples `w (K, 3)` (module docstring)."""
+        cos = self.normals @ w.T
+        scale = omega / w.shape[0]
+        E = jnp.where(above, closed - scale * jnp.sum((1 - V) * cos, axis=1),
+                      jnp.where(straddle, scale * jnp.sum(V * jnp.maximum(cos, 0.0), axis=1), 0.0))
+        return (self.albedo / jnp.pi * E).reshape(self.pixels.shape[0], self.pixel_samples).mean(axis=1)
+
+    def assemble(self, visibility: Float[Array, "Q J K"]) -> Float[Array, "P N"]:
+        """`A (P, N)` from any visibility of the footprint points along `directions`, all at once.
+
+        `visibility[q, j, k]` in [0, 1] for point `q` (`points()`' order) and the `k`-th sample of
+        the `j`-th env pixel in `columns`; `matrix` is `assemble` of the soft visibility.
+        """
+        if visibility.shape != (self.normals.shape[0], *self.directions.shape[:2]):
+            raise ValueError(f"visibility must have shape {(self.normals.shape[0], *self.directions.shape[:2])}, "
+                             f"got {visibility.shape}")
+        return self._place(jax.vmap(self._column, in_axes=(1, 0, 0, 1, 1, 1))(
+            visibility, self.directions, self.omega, self.closed, self.above, self.straddle))
+
+    def points(self) -> Float[Array, "Q 3"]:
+        """The footprint points `(P * pixel_samples, 3)`, in the rows' order (pixel-major)."""
+        return jnp.stack([self.receivers.scatter(self.receivers.points[..., i]) for i in range(3)], axis=-1)
 
     def transport(self, occluder: Occluder | None = None, temperature=DEFAULT_TEMPERATURE,
                   tolerance: float = DEFAULT_CULL_TOLERANCE) -> TransportMatrix:
