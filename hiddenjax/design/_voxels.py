@@ -23,7 +23,8 @@ Printability: `Voxels.penalty` adds to the log-objective a connectivity term, th
 smallest `alpha` on the path (zero when every occupied voxel hangs from the plate), and a
 smoothness term, the mean squared difference of `alpha` between face neighbours. `occupied`
 thresholds `alpha` at 1/2 (`theta > 0`) and keeps the voxels face-connected to the plate;
-`mesh` is the plate and one closed cube per kept voxel (a slicer unites them). The smallest wall
+`mesh` is the surface between the solid (plate and kept voxels) and the air, one closed manifold
+(where two voxels meet along an edge only, a cell beside the edge is filled). The smallest wall
 is one voxel.
 """
 
@@ -45,7 +46,7 @@ class Voxels(eqx.Module):
 
     **Fields:** `footprint` the side of the square base (metres), `height` the largest height,
     `plate` the base plate's thickness, `cells` voxels across each horizontal side, `layers`
-    voxels from the plate to `height` (default: as many as make the voxels closest to cubes),
+    voxels from the plate to `height` (0, the default: as many as make the voxels closest to cubes),
     `connect` and `smooth` the weights of the printability penalties (module docstring).
     """
 
@@ -240,7 +241,7 @@ def voxel_rays(shape: Voxels, points: Float[np.ndarray, "Q 3"], directions: Floa
         far = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
         return near, far
 
-    rows = []
+    lists = []  # per chunk: (R, M_chunk) crossed indices, padded
     for start in range(0, len(o), chunk):
         oc, dc = o[start:start + chunk], d[start:start + chunk]
         (nx, fx), (ny, fy), (nz, fz) = (slabs(oc[:, a], dc[:, a], np.asarray(edges[a])) for a in range(3))
@@ -249,12 +250,16 @@ def voxel_rays(shape: Voxels, points: Float[np.ndarray, "Q 3"], directions: Floa
         hit = ((enter < leave) & (leave > 1e-9)).reshape(len(oc), V)
         (px, qx), (py, qy), (pz, qz) = (slabs(oc[:, a], dc[:, a], np.asarray(plate[a])) for a in range(3))
         enter, leave = np.maximum(np.maximum(px, py), pz)[:, 0], np.minimum(np.minimum(qx, qy), qz)[:, 0]
-        rows.append(np.concatenate([hit, ((enter < leave) & (leave > 1e-9))[:, None]], axis=1))
-    hit = np.concatenate(rows)
-    M = max(int(hit.sum(axis=1).max()), 1)
-    order = np.argsort(~hit, axis=1, kind="stable")[:, :M]
-    rays = np.where(np.take_along_axis(hit, order, axis=1), order, V + 1)
-    return rays.reshape(Q, J, K, M).astype(np.int32)
+        hit = np.concatenate([hit, ((enter < leave) & (leave > 1e-9))[:, None]], axis=1)
+        count = hit.sum(axis=1)
+        row, col = np.nonzero(hit)  # row-major: each ray's voxels in index order
+        slot = np.arange(len(row)) - np.repeat(np.cumsum(count) - count, count)
+        block = np.full((len(oc), max(int(count.max()), 1)), V + 1, np.int32)
+        block[row, slot] = col
+        lists.append(block)
+    M = max(b.shape[1] for b in lists)
+    rays = np.concatenate([np.pad(b, ((0, 0), (0, M - b.shape[1])), constant_values=V + 1) for b in lists])
+    return rays.reshape(Q, J, K, M)
 
 
 def voxel_visibility(shape: Voxels, rays: Int[Array, "Q J K M"], theta, temperature) -> Float[Array, "Q J K"]:
