@@ -94,23 +94,23 @@ class Voxels(eqx.Module):
             raise ValueError(f"theta must have shape {self.shape}, got {theta.shape}")
         return theta
 
-    def boxes(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every voxel's lowest and highest corner `(cells * layers * cells, 3)` each (metres), in `theta`'s order."""
-        i, j, k = np.meshgrid(*(np.arange(n) for n in self.shape), indexing="ij")
-        dy = (self.height - self.plate) / self.layers
-        low = np.stack([-self.footprint / 2 + i * self.width, self.plate + j * dy, -self.footprint / 2 + k * self.width],
-                       axis=-1).reshape(-1, 3)
-        return low, low + [self.width, dy, self.width]
+    def edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The voxels' boundaries along x, y (from the plate's top to `height`) and z (metres):
+        voxel `[i, j, k]` spans `x[i:i+2] x y[j:j+2] x z[k:k+2]`."""
+        across = -self.footprint / 2 + self.width * np.arange(self.cells + 1)
+        return across, np.linspace(self.plate, self.height, self.layers + 1), across
+
+    def _logit(self, theta, temperature):
+        """`T phi = T theta s / 2`, whose sigmoid is the occupancy."""
+        return temperature * self._check_theta(theta) * (self.width / 2)
 
     def log_transmittance(self, theta, temperature) -> Float[Array, " V"]:
         """`log(1 - alpha_v) = -softplus(T theta_v s / 2)` per voxel, flattened in `theta`'s order."""
-        theta = self._check_theta(theta)
-        return -jax.nn.softplus(temperature * theta.reshape(-1) * (self.width / 2))
+        return -jax.nn.softplus(self._logit(theta, temperature).reshape(-1))
 
     def occupancy(self, theta, temperature) -> Float[Array, "X Y Z"]:
         """`alpha = sigmoid(T theta s / 2)`, each voxel's occupancy at temperature `T` (1/m)."""
-        theta = self._check_theta(theta)
-        return jax.nn.sigmoid(temperature * theta * (self.width / 2))
+        return jax.nn.sigmoid(self._logit(theta, temperature))
 
     def penalty(self, theta, temperature) -> Float[Array, ""]:
         """`connect * mean(alpha - c) + smooth * mean over face neighbours of (alpha_u - alpha_v)^2`.
@@ -149,20 +149,18 @@ class Voxels(eqx.Module):
         gets one of its two empty neighbours filled (`_fill_edge_contacts`; the hard check scores
         this mesh, fills included).
         """
-        dy = (self.height - self.plate) / self.layers
-        edges = (-self.footprint / 2 + self.width * np.arange(self.cells + 1),
-                 np.r_[0.0, self.plate + dy * np.arange(self.layers + 1)],
-                 -self.footprint / 2 + self.width * np.arange(self.cells + 1))
-        solid = _fill_edge_contacts(np.concatenate([np.ones((self.cells, 1, self.cells), bool),
-                                                    self.occupied(theta)], axis=1))
-        return _boundary_mesh(solid, edges)
+        x, y, z = self.edges()
+        return _boundary_mesh(self._printed(theta), (x, np.r_[0.0, y], z))
 
     def volume(self, theta) -> float:
         """The printed volume (m^3), exact: the plate plus the kept voxels (edge fills included, as `mesh`)."""
-        low, high = self.boxes()
-        solid = _fill_edge_contacts(np.concatenate([np.ones((self.cells, 1, self.cells), bool),
-                                                    self.occupied(theta)], axis=1))
-        return float(self.footprint ** 2 * self.plate + solid[:, 1:].sum() * np.prod(high[0] - low[0]))
+        voxel = self.width ** 2 * (self.height - self.plate) / self.layers
+        return float(self.footprint ** 2 * self.plate + self._printed(theta)[:, 1:].sum() * voxel)
+
+    def _printed(self, theta) -> Bool[np.ndarray, "X Y+1 Z"]:
+        """The plate (layer 0) and the kept voxels above it, edge-only contacts filled."""
+        plate = np.ones((self.cells, 1, self.cells), bool)
+        return _fill_edge_contacts(np.concatenate([plate, self.occupied(theta)], axis=1))
 
 
 def _fill_edge_contacts(solid: np.ndarray) -> np.ndarray:
@@ -221,10 +219,7 @@ def voxel_rays(shape: Voxels, points: Float[np.ndarray, "Q 3"], directions: Floa
     layer of voxels along x, y and z, and a voxel is crossed when the largest of its three entries
     is below the smallest of its three exits, and that exit is ahead of the point.
     """
-    dy = (shape.height - shape.plate) / shape.layers
-    edges = (-shape.footprint / 2 + shape.width * np.arange(shape.cells + 1),
-             shape.plate + dy * np.arange(shape.layers + 1),
-             -shape.footprint / 2 + shape.width * np.arange(shape.cells + 1))
+    edges = shape.edges()
     plate = ((-shape.footprint / 2, shape.footprint / 2), (0.0, shape.plate), (-shape.footprint / 2, shape.footprint / 2))
     V = int(np.prod(shape.shape))
     Q, (J, K) = len(points), directions.shape[:2]
