@@ -717,7 +717,7 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("design", help="optimize a printable occluder for the lowest reconstruction error",
                        description="Designing the object camera: a height field, boxes, cylinders or voxels on a "
                                    "square base plate, optimized through the soft shadow transport for an objective "
-                                   "under the default prior "
+                                   "under the default prior with its smoothness held fixed "
                                    "(A-optimal, D-optimal, expected error over skies, or the default solve's "
                                    "reconstruction error over skies), "
                                    "then checked with Embree's hard shadows against the bundled fixtures. Writes "

@@ -352,11 +352,15 @@ def teapot_transport():
 
 
 def test_reconstruction_objective_is_the_default_solve_and_its_derivative(teapot_transport):
+    """The objective's maps are the default solve's with the smoothness held fixed (`hdr_prior(adapt=0.0)`),
+    through the solver's own code; an adaptive prior is refused."""
     T, grid = teapot_transport, teapot_transport.grid
     skies = np.stack([grid.downsample(hj.scenes.procedural_sky(64, 128, seed=k)) for k in range(2)])
     obj = hd.Objective.build(T.A, grid, "reconstruction", skies=skies)
     estimates = eqx.filter_jit(lambda o, A: o.estimates(A))(obj, T.A)
-    op = hj.solvers.IlluminationOperator.build(T)  # the default prior, through the solver's own code
+    op = hj.solvers.IlluminationOperator.build(T, prior=hj.solvers.hdr_prior(adapt=0.0))
+    with pytest.raises(ValueError, match="hold the smoothness fixed"):
+        hd.Objective.build(T.A, grid, "reconstruction", skies=skies, prior=hj.solvers.hdr_prior())
     for x, est in zip(obj.skies, estimates):
         solved = op.solve(T.rows_to_image(T.A @ x), throw=False).env.reshape(-1)
         assert float(jnp.max(jnp.abs(est - solved)) / jnp.max(solved)) < 1e-3  # measured 2.5e-5

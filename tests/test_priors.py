@@ -142,6 +142,14 @@ def test_bad_priors_and_weights_raise_one_clear_error(x64):
             L2Prior(threshold=bad)
     with pytest.raises(ValueError, match="sky.threshold must be 0"):
         SunSkyPrior(sky=L2Prior(threshold=0.02))
+    for bad in (-0.4, np.nan, np.inf):
+        with pytest.raises(ValueError, match="adapt must be a finite constant >= 0"):
+            L2Prior(reweight=3, adapt=bad)
+    for bad in ((0.0, 3.0), (3.0, 0.1), (0.1, np.inf)):
+        with pytest.raises(ValueError, match="adapt_range must be finite factors"):
+            L2Prior(reweight=3, adapt=0.4, adapt_range=bad)
+    with pytest.raises(ValueError, match="give reweight >= 1"):
+        L2Prior(adapt=0.4)
 
 
 def test_reweighting_assembles_the_weighted_laplacian_and_solves_each_image_alone(x64):
@@ -167,6 +175,39 @@ def test_reweighting_assembles_the_weighted_laplacian_and_solves_each_image_alon
     many = op.solve_many(stack)
     for k in range(2):
         assert np.allclose(many.env[k], op.solve(stack[k]).env, rtol=1e-9, atol=1e-12)
+
+
+def test_spread_factor_is_the_rule_on_the_observed_cells(x64):
+    """`clip(a / f, lo, hi)` with `f = exp(H) / n`: light spread evenly over `k` of `n` observed cells has
+    `f = k / n`; unobserved cells (`diag(A^T A)` near 0) count in neither."""
+    prior = L2Prior(reweight=3, adapt=0.4, adapt_range=(0.1, 3.0))
+    energy = jnp.concatenate([jnp.ones(40), jnp.zeros(24)])
+    for k in (40, 20, 8, 2):
+        x = jnp.zeros(64).at[:k].set(2.5).at[50:].set(7.0)  # the unobserved cells' light is ignored
+        assert float(prior.spread_factor(x, energy)) == pytest.approx(min(0.4 * 40 / k, 3.0), rel=1e-12)
+    x = jnp.asarray(np.random.default_rng(0).random((64, 3)))
+    p = np.asarray(x).mean(1)[:40] / np.asarray(x).mean(1)[:40].sum()
+    spread = np.exp(-np.sum(p * np.log(p))) / 40
+    assert float(prior.spread_factor(x, energy)) == pytest.approx(np.clip(0.4 / spread, 0.1, 3.0), rel=1e-12)
+    assert float(prior.spread_factor(10 * x, energy)) == pytest.approx(float(prior.spread_factor(x, energy)))
+
+
+def test_adapted_smoothness_follows_the_first_reweighted_map_and_is_reported(sun_scene):
+    """The default's smoothness after its first reweighted solve is `smooth * spread_factor(x_1)`: larger
+    under a sun (light in a few cells) than under an overcast sky, and `sol.smooth` says which."""
+    setup, T = sun_scene
+    op = hj.solvers.IlluminationOperator.build(T)  # "hdr"
+    first = hj.solvers.L2Prior(smooth=1.0, ridge=hj.solvers.DEFAULT_RIDGE, floor=0.3, reweight=1, threshold=0.02)
+    factors = []
+    for power in (3.0, 0.0):
+        pano = sky_with_sun(0.6, 2.0, power=power)
+        photo = hj.reference_render(setup.scene, setup.camera, pano, samples=64, pixel_samples=2, seed=6)
+        sol = op.solve(photo)
+        x1 = hj.solvers.IlluminationOperator.build(T, prior=first).solve(photo).env.reshape(T.grid.size, -1)
+        expected = op.prior.spread_factor(x1, jnp.sum(T.A * T.A, axis=0))  # diag(A^T A)
+        assert float(sol.smooth / op.smooth) == pytest.approx(float(expected), rel=1e-4)
+        factors.append(float(expected))
+    assert factors[0] > 1.5 * factors[1], factors  # the sun's sky is smoothed more firmly
 
 
 def test_threshold_lowers_the_map_by_a_fraction_of_its_mean_and_solves_its_weighted_l1_program(x64):

@@ -10,7 +10,7 @@ import trimesh
 
 from ..metrics import env_errors
 from ..scene import EnvGrid
-from ..solvers import IlluminationOperator
+from ..solvers import IlluminationOperator, hdr_prior
 from ..transport import reference_render, transport_matrix
 from ._optimize import stage
 
@@ -22,7 +22,8 @@ def reconstruction_study(meshes: dict[str, trimesh.Trimesh], panoramas: dict[str
 
     Each mesh stands on the plane of `stage` (scaled to `footprint`); the photo is
     `reference_render` of the panorama (`samples` paths per pixel sample), the solve
-    `IlluminationOperator.build(T, prior)` on the Embree matrix, the truth the panorama
+    `IlluminationOperator.build(T, prior)` on the Embree matrix (`prior` None: `hdr_prior(adapt=0.0)`,
+    the prior designs are optimized with), the truth the panorama
     area-averaged onto `grid`. **Returns** `(scores, estimates)`: `scores[mesh][panorama]` the
     errors, with a `"mean"` entry per mesh holding each error's mean over the panoramas;
     `estimates[mesh][panorama]` the recovered map `(H, W, 3)`.
@@ -33,7 +34,7 @@ def reconstruction_study(meshes: dict[str, trimesh.Trimesh], panoramas: dict[str
     for name, mesh in meshes.items():
         setup = stage(mesh, footprint, width=width, height=height, elevation=elevation)
         T = transport_matrix(setup.scene, setup.camera, grid, progress=False)
-        op = IlluminationOperator.build(T, prior=prior)  # None: the default prior
+        op = IlluminationOperator.build(T, prior=hdr_prior(adapt=0.0) if prior is None else prior)
         runs, maps[name] = {}, {}
         for sky, pano in panoramas.items():
             photo = reference_render(setup.scene, setup.camera, pano, samples=samples, pixel_samples=pixel_samples,

@@ -66,17 +66,21 @@ class Objective(eqx.Module):
               noise: float = 0.01) -> "Objective":
         """The objective with the prior's weights made absolute on the bare plane's transport `bare`.
 
-        `prior`: the L2 prior whose weights define `R` (default `hj.solvers.hdr_prior()`, the
-        solver's default: its reweighting is nonlinear, so its Gaussian part, the first of its
+        `prior`: the L2 prior whose weights define `R` (default `hj.solvers.hdr_prior(adapt=0.0)`,
+        the solver's default with its smoothness held at 1.0: the spread rule would let a design
+        move its own weight; the reweighting is nonlinear, so its Gaussian part, the first of its
         solves, is what the Gaussian objectives design for; `"reconstruction"` runs it whole).
         `band`: "upper", "all", or cell indices. `skies`: env maps `(S, H, W[, 3])` on `grid`
         for `"expected_error"` and `"reconstruction"` (channels averaged).
         """
         if kind not in KINDS:
             raise ValueError(f"unknown objective {kind!r}; choose one of {KINDS}")
-        prior = hdr_prior() if prior is None else prior
+        prior = hdr_prior(adapt=0.0) if prior is None else prior
         if not isinstance(prior, L2Prior):
             raise ValueError(f"design objectives need an L2 prior (hj.solvers.L2Prior / hdr_prior()), got {prior!r}")
+        if prior.adapt:
+            raise ValueError(f"design objectives hold the smoothness fixed, got adapt={prior.adapt}: pass "
+                             f"hj.solvers.hdr_prior(adapt=0.0) or an L2Prior with adapt=0")
         bare = jnp.asarray(bare)
         if bare.ndim != 2 or bare.shape[1] != grid.size:
             raise ValueError(f"bare must be a (P, {grid.size}) transport matrix on the grid, got {bare.shape}")

@@ -53,7 +53,8 @@ class Prior(eqx.Module):
 
     @abc.abstractmethod
     def solve(self, op, c, ys, nonneg: bool, solver):
-        """`(x (N[, K]), objective ([K]), kkt ([K]), steps ([K]), result ([K]), sources)` for `c = sum_v A_v^T y_v`.
+        """`(x (N[, K]), objective ([K]), kkt ([K]), steps ([K]), result ([K]), sources, smooth)` for `c = sum_v A_v^T y_v`,
+        `smooth` the absolute smoothness weight the solve used.
 
         `op` is the `IlluminationOperator` (its views, `B`, `factor`), `ys` the observed pixels of
         each view's image, `(P_v[, K])`.
@@ -80,6 +81,14 @@ class L2Prior(Prior):
     the unconstrained map by exactly `t m` in every cell before `x >= 0` clips it: a soft
     threshold at a fraction `t` of the mean radiance, which removes faint light that model error
     (interreflections, sampling) puts in a dark sky.
+
+    `adapt=a > 0` chooses the smoothness from the light's spread (needs `reweight >= 1`): after the
+    first reweighted solve (the first solve, for `reweight=1`), the later ones use
+    `smooth * clip(a / f, *adapt_range)`, where `f = exp(H) / n` is the effective fraction of the
+    `n` observed cells (`diag(A^T A)` above 1e-3 of its mean) that carry the light and
+    `H = -sum_i p_i log p_i` the entropy of `p_i = x_i / sum x` over them (channel mean): light
+    concentrated in a few cells (a sun, lamps) is smoothed more firmly around them, light spread
+    over the sky less (docs: priors, "Choosing the weight from the photo").
     """
 
     name: ClassVar[str] = "l2"
@@ -89,9 +98,19 @@ class L2Prior(Prior):
     reweight: int = eqx.field(static=True, default=0)
     floor: float = 0.1
     threshold: float = eqx.field(static=True, default=0.0)
+    adapt: float = eqx.field(static=True, default=0.0)
+    adapt_range: tuple[float, float] = eqx.field(static=True, default=(0.1, 3.0))
 
     def __check_init__(self):
         _check_weights(self.smooth, self.ridge)
+        if not (np.isfinite(self.adapt) and self.adapt >= 0):
+            raise ValueError(f"adapt must be a finite constant >= 0 of the light-spread rule (0: fixed smoothness), "
+                             f"got {self.adapt}")
+        lo, hi = self.adapt_range
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
+            raise ValueError(f"adapt_range must be finite factors 0 < low <= high, got {self.adapt_range}")
+        if self.adapt and not self.reweight:
+            raise ValueError("adapt > 0 chooses the smoothness of the reweighted solves: give reweight >= 1")
         if not (np.isfinite(self.threshold) and self.threshold >= 0):
             raise ValueError(f"threshold must be a finite fraction >= 0 of the mean radiance, got {self.threshold}")
         if self.reweight < 0:
@@ -120,12 +139,22 @@ class L2Prior(Prior):
         m = jnp.mean(x0, axis=0, keepdims=True)
         return c - self.threshold * m * (B0 @ jnp.ones(B0.shape[0], B0.dtype)).reshape((-1,) + (1,) * (c.ndim - 1))
 
+    def spread_factor(self, x, energy):
+        """`clip(adapt / f, *adapt_range)` for a map `x (N[, C])` and `energy = diag(A^T A) (N,)` (class doc)."""
+        lum = jnp.maximum(x.mean(axis=1) if x.ndim == 2 else x, 0.0)
+        observed = energy > 1e-3 * jnp.mean(energy)
+        p = jnp.where(observed, lum, 0.0)
+        p = p / jnp.maximum(jnp.sum(p), jnp.finfo(p.dtype).tiny)
+        entropy = -jnp.sum(jnp.where(p > 0, p * jnp.log(jnp.where(p > 0, p, 1.0)), 0.0))
+        spread = jnp.exp(entropy) / jnp.sum(observed)
+        return jnp.clip(self.adapt / spread, *self.adapt_range)
+
     def reweighted(self, op, c, nonneg, solver):
-        """`(B_w, factor of B_w, R_w, c_t)` after `reweight` iterations (`op.B`, its factor and `R` when 0),
-        `c_t` the columns with the threshold's term."""
+        """`(B_w, factor of B_w, R_w, c_t, smooth)` after `reweight` iterations (`op.B`, its factor and `R`
+        when 0), `c_t` the columns with the threshold's term, `smooth` the absolute smoothness of `R_w`."""
         grid = op.views[0].grid
         R = prior_matrix(grid, op.smooth, op.ridge, op.B.dtype)
-        B, factor = op.B, op.factor
+        B, factor, smooth = op.B, op.factor, op.smooth
         gram = op.B - R
         if self.reweight == 0 and self.thresholds():
             c = self.thresholded(op.B, c, _solve(B, factor, c, solver, nonneg)[0])
@@ -133,25 +162,27 @@ class L2Prior(Prior):
             x, _, _, _ = _solve(B, factor, c, solver, nonneg)
             if k == 0:
                 c = self.thresholded(op.B, c, x)
-            R = op.smooth * weighted_laplacian(grid, log_domain_weights(grid, x, self.floor)) + op.ridge * jnp.eye(
+            if self.adapt and k == min(1, self.reweight - 1):
+                smooth = op.smooth * self.spread_factor(x, jnp.diagonal(gram))
+            R = smooth * weighted_laplacian(grid, log_domain_weights(grid, x, self.floor)) + op.ridge * jnp.eye(
                 grid.size, dtype=B.dtype)
             B = gram + R
             factor = _cholesky(B)
-        return B, factor, R, c
+        return B, factor, R, c, smooth
 
     def solve(self, op, c, ys, nonneg, solver):
         if (self.reweight or self.thresholds()) and not nonneg:
             raise ValueError("the HDR-aware prior (reweight > 0 or threshold > 0, the 'hdr' default) weights the "
                              "smoothness by log x and sets dim cells to zero, which needs x >= 0; solve a signed map "
                              "with prior='l2' (the default when nonneg=False)")
-        B, factor, R, c_t = self.reweighted(op, c, nonneg, solver)
+        B, factor, R, c_t, smooth = self.reweighted(op, c, nonneg, solver)
         x, grad, steps, result = _solve(B, factor, c_t, solver, nonneg)
         # |A x - y|^2 + x^T R x from the residual itself: x^T B x - 2 c^T x + |y|^2 would lose the
         # digits that tell two scenes' energies apart to cancellation (posterior weights use them)
         residual = sum(jnp.sum((matvec(t, x) - y) ** 2, 0) for t, y in zip(op.views, ys))
         objective = residual + jnp.einsum("n...,n...->...", x, jnp.einsum("mn,n...->m...", R, x))
         objective = objective + 2 * jnp.sum((c - c_t) * x, axis=0)  # the threshold's linear term
-        return x, objective, _kkt_residual(grad, c, x, nonneg), steps, result, None
+        return x, objective, _kkt_residual(grad, c, x, nonneg), steps, result, None, smooth
 
 
 def weighted_laplacian(grid, w) -> Float[Array, "N N"]:
@@ -372,17 +403,18 @@ class IlluminationOperator(eqx.Module):
         if len({y.shape[1:] for y in ys}) != 1:
             raise ValueError("all views' images must have the same number of channels")
         c = sum(rmatvec(t, y) for t, y in zip(self.views, ys))
-        x, objective, kkt, steps, result, sources = self.prior.solve(self, c, ys, nonneg, solver)
+        x, objective, kkt, steps, result, sources, smooth = self.prior.solve(self, c, ys, nonneg, solver)
         if throw:
             x = eqx.error_if(x, jnp.any(result != SUCCESS), "solve_illumination: the solver ran out of max_steps "
                              "before the KKT residual met rtol; raise max_steps, or pass throw=False")
         env = x.reshape(self.views[0].grid.shape + x.shape[1:])
-        return IlluminationSolution(env, objective, kkt, steps, result, self.smooth, self.ridge, sources)
+        return IlluminationSolution(env, objective, kkt, steps, result, smooth, self.ridge, sources)
 
     def solve_many(self, images, nonneg: bool = True, solver=None, throw: bool = True) -> IlluminationSolution:
         """`solve` for a stack `images (M, H, W[, C])` (a sequence of stacks, one per view): a video, lightings.
 
-        The fields gain a leading `M` axis (`smooth`, `ridge` stay scalars). The same as
+        The fields gain a leading `M` axis (`smooth`, `ridge` stay scalars for priors whose columns
+        are independent; others solve one image at a time, and every field gains the axis). The same as
         `jax.vmap(op.solve)(images)`, but faster: the images become columns of one problem, so every
         unconstrained start comes from one triangular solve, each image's projected Newton steps
         factorize only its own free block (under `vmap`, the choice of block size runs every size),
@@ -435,16 +467,21 @@ def as_prior(prior=None, smooth=None, ridge=None, absolute: bool = False) -> Pri
     return names[prior]()
 
 
-def hdr_prior() -> L2Prior:
-    """The default prior, `"hdr"`: eq. 5.3 made HDR-aware, `L2Prior(smooth=1.0, floor=0.3, reweight=3, threshold=0.02)`.
+def hdr_prior(adapt: float = 0.4) -> L2Prior:
+    """The default prior, `"hdr"`: eq. 5.3 made HDR-aware,
+    `L2Prior(smooth=1.0, floor=0.3, reweight=3, threshold=0.02, adapt=0.4)`.
 
     Three reweighted solves towards the log-domain smoothness, from `A^T y` lowered by 2% of the
-    thesis' map's mean radiance (see `L2Prior`). The weights were chosen on a grid (`smooth`
-    0.3-3, `floor` 0.1-3, `threshold` 0-0.05) for mean tone-mapped SSIM on photos of the seven
-    development HDRIs with the teapot and sphere fixtures (128x128, 32x64 grid); the
-    coded-aperture fixture, not used to choose them, is the held-out check (docs: priors).
+    thesis' map's mean radiance, the last two with the smoothness chosen from the light's spread
+    in the first: `clip(0.4 / f, 0.1, 3)`, `f` the effective fraction of the observed sky that
+    carries the light (see `L2Prior`). `floor` and `threshold` were chosen on a grid (`smooth`
+    0.3-3, `floor` 0.1-3, `threshold` 0-0.05) and the rule's constant fitted (0.4 for
+    `log s = log a - log f`) for mean tone-mapped SSIM on photos of the seven development HDRIs
+    with the teapot and sphere fixtures (128x128, 32x64 grid); the coded-aperture fixture, not
+    used to choose them, is the held-out check (docs: priors). `hdr_prior(adapt=0.0)` keeps the
+    smoothness at 1.0 throughout (the form occluder design optimizes with).
     """
-    return L2Prior(smooth=1.0, ridge=DEFAULT_RIDGE, floor=0.3, reweight=3, threshold=0.02)
+    return L2Prior(smooth=1.0, ridge=DEFAULT_RIDGE, floor=0.3, reweight=3, threshold=0.02, adapt=adapt)
 
 
 PRESETS = {"hdr": hdr_prior}  # named configurations beside the prior classes' own names

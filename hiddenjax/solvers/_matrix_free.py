@@ -105,6 +105,9 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
             c_t = c - prior.threshold * plain * ones.reshape((-1,) + (1,) * (c.ndim - 1))
         if prior.reweight and (stage or started):
             w = np.asarray(log_domain_weights(grid, jnp.asarray(x), prior.floor), np.float64)
+            # the spread rule reads the first reweighted map (from a start: the starting map)
+            if prior.adapt and stage == (0 if started else min(1, prior.reweight - 1) + 1):
+                ls = ls * float(prior.spread_factor(jnp.asarray(x), jnp.asarray(energy)))
         metric = energy + ls * (np.bincount(first, w, grid.size) + np.bincount(second, w, grid.size)) + lr
         metric = np.maximum(metric, 1e-30 * metric.max())
         precondition = _jacobi(metric, c.ndim) if coarse is None else coarse.preconditioner(w, metric, c.ndim)

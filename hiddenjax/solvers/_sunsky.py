@@ -90,7 +90,7 @@ class SunSkyPrior(Prior):
         solver = ProjectedNewton() if solver is None else solver
         columns = c if c.ndim == 2 else c[:, None]
         grid = op.views[0].grid
-        B, factor, R, _ = self.sky.reweighted(op, columns, True, solver)  # the sky's prior, HDR-aware if asked
+        B, factor, R, _, smooth = self.sky.reweighted(op, columns, True, solver)  # the sky's prior, HDR-aware if asked
         yy = sum(jnp.sum(y * y, 0) for y in ys).reshape(-1)
         xs, ss, angles_k, active_k, rss_k, steps, result_k = _sunsky(B, factor, R, op.ridge, grid, columns, yy, self, solver)
         # BIC over the effective number of independent residuals, from the sky-only fit's residual image
@@ -122,7 +122,7 @@ class SunSkyPrior(Prior):
         one = (lambda a: a[0]) if c.ndim == 1 else (lambda a: a)
         steps = jnp.broadcast_to(jnp.sum(steps), kkt.shape)
         result = jnp.broadcast_to(result, kkt.shape)
-        return squeeze(env), one(objective), one(kkt), one(steps), one(result), sources
+        return squeeze(env), one(objective), one(kkt), one(steps), one(result), sources, smooth
 
 
 def _cell_geometry(grid, dtype):

@@ -132,7 +132,7 @@ class TVPrior(Prior):
         result = jnp.broadcast_to(result, kkt.shape)
         squeeze = (lambda a: a[:, 0]) if c.ndim == 1 else (lambda a: a)
         one = (lambda a: a[0]) if c.ndim == 1 else (lambda a: a)
-        return squeeze(w), one(objective), one(kkt), one(steps), one(result), None
+        return squeeze(w), one(objective), one(kkt), one(steps), one(result), None, op.smooth
 
 
 def _gram(B, grid, lr, rho, w):
