@@ -226,7 +226,7 @@ def test_voxel_transport_is_the_hard_transport_of_its_solid(voxel_problem, getke
     assert relrmse(np.asarray(matrix(problem, theta, 1e5)), same_samples) < 1e-6
     assert relrmse(np.asarray(matrix(problem, theta, 30.0)), same_samples) > 0.05
     # The rays: every one crosses the voxels, in order of index, padded past the plate's index.
-    rays = np.asarray(problem.rays)
+    rays = np.asarray(problem.visibility.rays)
     V = solid.size
     assert rays.min() >= 0 and rays.max() == V + 1 and np.any(rays == V)
 

@@ -40,21 +40,67 @@ def stage(mesh: trimesh.Trimesh, footprint: float, *, width: int = 32, height: i
     return object_on_plane(mesh, size=footprint, elevation=elevation, width=width, height=height)
 
 
+class TriangleVisibility(eqx.Module):
+    """How a triangle shape (`HeightField`, `Boxes`, `Cylinders`) shades the stage: the plane's and
+    the design's triangles through the sigmoid shadow volumes (`SoftTransport.matrix`), clustered
+    once (`Occluder.clusters`); no printability penalty."""
+
+    shape: HeightField | Boxes | Cylinders
+    plane: Float[Array, "F0 3 3"]
+    index: Array
+    surface: tuple[int, ...] = eqx.field(static=True)
+
+    @classmethod
+    def build(cls, shape, plane: np.ndarray) -> "TriangleVisibility":
+        design = np.asarray(shape.triangles(shape.init(jax.random.key(0))), np.float32) + [0, LIFT * shape.footprint, 0]
+        index, surface = Occluder.clusters(np.concatenate([plane, design]),
+                                           np.r_[np.zeros(len(plane), int), np.ones(len(design), int)])
+        return cls(shape, jnp.asarray(plane), jnp.asarray(index), surface)
+
+    def occluder(self, theta) -> Occluder:
+        lift = jnp.asarray([0.0, LIFT * self.shape.footprint, 0.0])
+        design = self.shape.triangles(theta) + lift[None, None]
+        return Occluder.gather(jnp.concatenate([self.plane, design.astype(self.plane.dtype)]), self.index, self.surface)
+
+    def matrix(self, soft: SoftTransport, theta, temperature) -> Float[Array, "P N"]:
+        return soft.matrix(self.occluder(theta), temperature)
+
+    def penalty(self, theta, temperature) -> Float[Array, ""]:
+        return jnp.zeros(())
+
+
+class VoxelVisibility(eqx.Module):
+    """How a `Voxels` grid shades the stage: each footprint ray's transmittance over the voxels it
+    crosses (`voxel_rays`, found once), assembled by `SoftTransport.assemble`; the grid's own
+    penalty (`Voxels.penalty`) keeps it printable."""
+
+    shape: Voxels
+    rays: Array
+
+    @classmethod
+    def build(cls, shape: Voxels, soft: SoftTransport) -> "VoxelVisibility":
+        return cls(shape, jnp.asarray(voxel_rays(shape, np.asarray(soft.points()), np.asarray(soft.directions))))
+
+    def matrix(self, soft: SoftTransport, theta, temperature) -> Float[Array, "P N"]:
+        return soft.assemble(voxel_visibility(self.shape, self.rays, theta, temperature))
+
+    def penalty(self, theta, temperature) -> Float[Array, ""]:
+        return self.shape.penalty(theta, temperature)
+
+
 class DesignProblem(eqx.Module):
     """A shape, the stage's soft transport and an objective: `loss(theta, temperature)`.
 
     **Fields:** `shape` (`HeightField`, `Boxes`, `Cylinders` or `Voxels`), `soft` the plane's footprint
-    points and direction samples, `plane` the plane's triangles, `index`/`surface` the clustering
-    of plane + design triangles (`Occluder.clusters`; empty for voxels), `rays` the voxels each
-    footprint ray crosses (`voxel_rays`; voxels only), `objective`; `camera`, `grid`.
+    points and direction samples, `plane` the plane's triangles, `visibility` how the shape shades
+    the stage (`TriangleVisibility` or `VoxelVisibility`: its matrix and its penalty),
+    `objective`; `camera`, `grid`.
     """
 
     shape: HeightField | Boxes | Cylinders | Voxels
     soft: SoftTransport
     plane: Float[Array, "F0 3 3"]
-    index: Array
-    surface: tuple[int, ...] = eqx.field(static=True)
-    rays: Array | None
+    visibility: TriangleVisibility | VoxelVisibility
     objective: Objective
     camera: Camera
     grid: EnvGrid
@@ -74,40 +120,26 @@ class DesignProblem(eqx.Module):
         setup = stage(box, shape.footprint, width=width, height=height, elevation=elevation)
         soft = SoftTransport.from_scene(setup.scene, setup.camera, grid, samples=samples, seed=seed)
         plane = np.asarray(setup.scene[0].triangles, np.float32)
-        if isinstance(shape, Voxels):
-            index, surface = np.zeros(0, int), ()
-            rays = jnp.asarray(voxel_rays(shape, np.asarray(soft.points()), np.asarray(soft.directions)))
-        else:
-            design = np.asarray(shape.triangles(shape.init(jax.random.key(0))), np.float32) + [0, LIFT * shape.footprint, 0]
-            index, surface = Occluder.clusters(np.concatenate([plane, design]),
-                                               np.r_[np.zeros(len(plane), int), np.ones(len(design), int)])
-            rays = None
+        visibility = (VoxelVisibility.build(shape, soft) if isinstance(shape, Voxels)
+                      else TriangleVisibility.build(shape, plane))
         objective = Objective.build(_bare_matrix(soft, plane), grid, kind, prior=prior, band=band, skies=skies,
                                     noise=noise)
-        return cls(shape, soft, jnp.asarray(plane), jnp.asarray(index), surface, rays, objective, setup.camera, grid,
-                   float(elevation))
+        return cls(shape, soft, jnp.asarray(plane), visibility, objective, setup.camera, grid, float(elevation))
 
     def bare_matrix(self) -> Float[Array, "P N"]:
         """`A` of the plane alone (no occluder): the reference the prior's weights are fixed on."""
         return _bare_matrix(self.soft, self.plane)
 
-    def occluder(self, theta) -> Occluder:
-        lift = jnp.asarray([0.0, LIFT * self.shape.footprint, 0.0])
-        design = self.shape.triangles(theta) + lift[None, None]
-        return Occluder.gather(jnp.concatenate([self.plane, design.astype(self.plane.dtype)]), self.index, self.surface)
-
     def matrix(self, theta, temperature) -> Float[Array, "P N"]:
         """The soft transport `A(theta) (P, N)` at `temperature` (voxels: their transmittance at `temperature`)."""
-        if isinstance(self.shape, Voxels):
-            return self.soft.assemble(voxel_visibility(self.shape, self.rays, theta, temperature))
-        return self.soft.matrix(self.occluder(theta), temperature)
+        return self.visibility.matrix(self.soft, theta, temperature)
 
     def loss(self, theta, temperature) -> Float[Array, ""]:
         return self.objective(self.matrix(theta, temperature))
 
     def penalty(self, theta, temperature) -> Float[Array, ""]:
         """What the shape adds to the log-objective to stay printable (`Voxels.penalty`; 0 for the others)."""
-        return self.shape.penalty(theta, temperature) if isinstance(self.shape, Voxels) else jnp.zeros(())
+        return self.visibility.penalty(theta, temperature)
 
     def hard_matrix(self, mesh: trimesh.Trimesh, samples: int = 16, pixel_samples: int = 4, seed: int = 0):
         """Embree's `TransportMatrix` of `mesh` (scaled to the footprint) on this stage: hard visibility."""
