@@ -9,12 +9,13 @@ with the 256x128 panorama (never `A x`). The default prior with its smoothness h
 of a grid a quarter decade apart; the *oracle* weight is the one with the best tone-mapped SSIM
 against the truth (which a user never has). The default itself (`hdr_prior()`) chooses its
 smoothness by the spread rule (`L2Prior.adapt`); its choice is `sol.smooth` over the weight of
-relative smooth 1. Cross-validation over held-out pixel blocks (`hj.solvers.cross_validate`: `--block` pixels square,
-`--folds` folds dealt at random, seed 0) solves the same prior without each fold's pixels and
-predicts them; the weight with the smallest held-out error is its choice, under each error
-measure of `hj.solvers.held_out_error` (squared, absolute, relative to the pixel's radiance, of
-log radiance). Reported: each rule's choice, its ratio to the oracle weight, and the tone-mapped
-SSIM of the map it gives, beside the fixed default weight. Writes a plot of tone-mapped SSIM against the weight per HDRI and `results.json`.
+relative smooth 1. Cross-validation over held-out pixel blocks (`hj.solvers.cross_validate`:
+`--block` pixels square, `--folds` folds dealt at random, seed 0) solves the same prior without each
+fold's pixels and predicts them; the weight with the smallest held-out error is its choice, under
+each error measure of `hj.solvers.held_out_error` (squared, absolute, relative to the pixel's
+radiance, of log radiance). Reported: each rule's choice, its ratio to the oracle weight, and the
+tone-mapped SSIM of the map it gives, beside the fixed default weight. Writes a plot of tone-mapped
+SSIM against the weight per HDRI and `results.json`.
 """
 
 import argparse

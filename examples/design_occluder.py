@@ -3,14 +3,15 @@
 Runs `hiddenjax design` with the `reconstruction` objective: a height field on a 10 cm square
 base, optimized through the soft shadow transport for the tone-mapped error of the default solve
 of four development HDRIs (`data_fixtures/hdri/`, real panoramas; the first four by name), then
-scored with Embree's hard shadows against the bundled fixtures. Then the reconstruction study on
-the three HDRIs it never saw: photos rendered by the independent path tracer with the design,
-the fixtures (teapot, sphere, coded aperture, each scaled into the same 10 cm cube) and the full
-10 cm block on the same stage, each solved with the default prior (its smoothness held fixed, `hdr_prior(adapt=0.0)`, as the design was optimized) and scored by the tone-mapped
-SSIM of the upper hemisphere (`--shape boxes` or `cylinders`: a union of such solids on the base
-instead of the height field; `--shape voxels`: a voxel grid above it, with holes and overhangs). Writes the CLI's files (design.stl, design.png, objective.png,
-design.json), a contact sheet per held-back HDRI and results.json. `--objective` picks another
-objective (the Gaussian ones need no skies).
+scored with Embree's hard shadows against the bundled fixtures. Then the reconstruction study on the
+three HDRIs it never saw: photos rendered by the independent path tracer with the design, the
+fixtures (teapot, sphere, coded aperture, each scaled into the same 10 cm cube) and the full 10 cm
+block on the same stage, each solved with the default prior (its smoothness held fixed,
+`hdr_prior(adapt=0.0)`, as the design was optimized) and scored by the tone-mapped SSIM of the upper
+hemisphere (`--shape boxes` or `cylinders`: a union of such solids on the base instead of the height
+field; `--shape voxels`: a voxel grid above it, with holes and overhangs). Writes the CLI's files
+(design.stl, design.png, objective.png, design.json), a contact sheet per held-back HDRI and
+results.json. `--objective` picks another objective (the Gaussian ones need no skies).
 
     python examples/design_occluder.py [--quick] [--out DIR] [--objective ...] [--shape heightfield|boxes|cylinders|voxels]
                                        [--temperature START END] [--controls N] [--cells N] [--steps N]
