@@ -43,7 +43,7 @@ from . import photo as _photo
 from . import shadows as _shadows
 from .scene import EnvGrid, Scene, fixture, object_on_plane, procedural_sky
 from .solvers import (DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior,
-                      solve_illumination)
+                      regularization_weights, solve_illumination)
 from ._scene_file import load_scene
 from .transport import (TransportMatrix, TransportOperator, reference_render, render, render_point_lights,
                         transport_matrix, transport_operator)
@@ -167,6 +167,11 @@ def solve(args) -> dict:
     print(f"wrote {out}: {T.grid.height}x{T.grid.width} env map ({prior_name}), {seconds:.2f} s, "
           f"KKT residual {kkt:.1e}")
     summary = dict(seconds=seconds, kkt_residual=kkt, prior=prior_name)
+    resolved = as_prior(prior)
+    if isinstance(resolved, L2Prior) and resolved.adapt:  # the default: say which smoothness the photo chose
+        base = float(regularization_weights(T, resolved.smooth, resolved.ridge, resolved.absolute)[0])
+        summary["smooth"] = resolved.smooth * float(np.mean(solution.smooth)) / base
+        print(f"smoothness {summary['smooth']:.3g} (relative), chosen from the light's spread")
     if solution.sources is not None:
         src = solution.sources
         active = np.asarray(src.active)

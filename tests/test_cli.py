@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -73,6 +74,9 @@ def test_render_then_solve_through_the_command(built):
 
     proc = run("solve", "A.npz", "image.exr", "-o", "env.exr", "--png", "env.png", cwd=built)
     assert proc.returncode == 0, proc.stderr
+    # a constant sky spreads the light evenly (f = 1): the default smooths it by 0.4 times its weight
+    chosen = re.search(r"smoothness ([0-9.e+-]+) \(relative\), chosen from the light's spread", proc.stdout)
+    assert chosen and float(chosen.group(1)) == pytest.approx(0.4, rel=0.05), proc.stdout
     env = hj.io.read_exr(built / "env.exr")
     assert env.shape == (4, 8, 3) and np.all(env >= 0) and (built / "env.png").is_file()
     # the solve explains the photo: A x reproduces it (a plane sees only the upper hemisphere's total)
