@@ -64,6 +64,12 @@ def test_output_files_follow_the_umask(built):
     assert (built / "A.npz").stat().st_mode & 0o777 == 0o644
 
 
+def chosen_smoothness(stdout: str) -> float | None:
+    """The relative smoothness `hiddenjax solve` says the default prior chose, or None."""
+    found = re.search(r"smoothness ([0-9.e+-]+) \(relative\), chosen from the light's spread", stdout)
+    return float(found.group(1)) if found else None
+
+
 def test_render_then_solve_through_the_command(built):
     # A constant sky over a bare plane: radiance albedo * L everywhere (closed form, eq. 5.1)
     hj.io.write_exr(built / "sky.exr", np.full((16, 32, 3), 2.0, np.float32))  # a panorama: downsampled
@@ -75,8 +81,7 @@ def test_render_then_solve_through_the_command(built):
     proc = run("solve", "A.npz", "image.exr", "-o", "env.exr", "--png", "env.png", cwd=built)
     assert proc.returncode == 0, proc.stderr
     # a constant sky spreads the light evenly (f = 1): the default smooths it by 0.4 times its weight
-    chosen = re.search(r"smoothness ([0-9.e+-]+) \(relative\), chosen from the light's spread", proc.stdout)
-    assert chosen and float(chosen.group(1)) == pytest.approx(0.4, rel=0.05), proc.stdout
+    assert chosen_smoothness(proc.stdout) == pytest.approx(0.4, rel=0.05), proc.stdout
     env = hj.io.read_exr(built / "env.exr")
     assert env.shape == (4, 8, 3) and np.all(env >= 0) and (built / "env.png").is_file()
     # the solve explains the photo: A x reproduces it (a plane sees only the upper hemisphere's total)
@@ -104,6 +109,7 @@ def test_solve_a_scene_file_through_the_operator(built):
                cwd=built)
     assert proc.returncode == 0, proc.stderr
     assert "TransportOperator(120 pixels x 128 env pixels" in proc.stdout
+    assert chosen_smoothness(proc.stdout) == pytest.approx(0.4, rel=0.05), proc.stdout  # the same rule, same sky
     env = hj.io.read_exr(built / "fine.exr")
     assert env.shape == (8, 16, 3)
     np.testing.assert_allclose(env[:4], 2.0, rtol=3e-2)  # the constant sky again, on the finer grid

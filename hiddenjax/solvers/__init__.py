@@ -3,6 +3,7 @@
 from ._illumination import DEFAULT_RIDGE as DEFAULT_RIDGE
 from ._illumination import DEFAULT_SMOOTH as DEFAULT_SMOOTH
 from ._illumination import DEFAULT_PRIOR as DEFAULT_PRIOR
+from ._illumination import REFERENCE_CELLS as REFERENCE_CELLS
 from .._qp import DampedNewton as DampedNewton
 from ._illumination import L2Prior as L2Prior
 from ._illumination import Prior as Prior
