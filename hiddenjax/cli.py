@@ -42,8 +42,8 @@ from . import metrics
 from . import photo as _photo
 from . import shadows as _shadows
 from .scene import EnvGrid, Scene, fixture, object_on_plane, procedural_sky
-from .solvers import (DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, REFERENCE_CELLS, IlluminationOperator, L2Prior,
-                      as_prior, regularization_weights, solve_illumination)
+from .solvers import (DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior,
+                      regularization_weights, relative_smooth, solve_illumination)
 from ._scene_file import load_scene
 from .transport import (TransportMatrix, TransportOperator, reference_render, render, render_point_lights,
                         transport_matrix, transport_operator)
@@ -169,13 +169,11 @@ def solve(args) -> dict:
     summary = dict(seconds=seconds, kkt_residual=kkt, prior=prior_name)
     resolved = as_prior(prior)
     if isinstance(resolved, L2Prior) and resolved.adapt:  # the default: say which smoothness the photo chose
-        # the absolute weights share one scale, which the ridge (never adapted) gives without another pass over A
-        if resolved.absolute or not resolved.ridge:
+        if resolved.absolute or not resolved.ridge:  # no ridge to carry the scale: one more pass over A
             base = float(regularization_weights(T, resolved.smooth, resolved.ridge, resolved.absolute)[0])
+            summary["smooth"] = resolved.smooth * float(np.mean(solution.smooth)) / base
         else:
-            finer = max(1.0, T.grid.size / REFERENCE_CELLS)
-            base = float(np.mean(solution.ridge)) / resolved.ridge * resolved.smooth * finer
-        summary["smooth"] = resolved.smooth * float(np.mean(solution.smooth)) / base
+            summary["smooth"] = float(np.mean(relative_smooth(T.grid, solution.smooth, solution.ridge, resolved.ridge)))
         print(f"smoothness {summary['smooth']:.3g} (relative), chosen from the light's spread")
     if solution.sources is not None:
         src = solution.sources

@@ -192,6 +192,13 @@ def test_spread_factor_is_the_rule_on_the_observed_cells(x64):
     assert float(prior.spread_factor(10 * x, energy)) == pytest.approx(float(prior.spread_factor(x, energy)))
 
 
+@pytest.mark.parametrize("grid", [hj.EnvGrid(4, 8), hj.EnvGrid(64, 128)])  # the reference size and a finer grid
+def test_relative_smooth_inverts_the_regularization_weights(x64, grid):
+    T, _, _ = random_problem(0, grid=grid)
+    ls, lr = hj.solvers.regularization_weights(T, 0.7, 2e-3)
+    assert float(hj.solvers.relative_smooth(grid, ls, lr, 2e-3)) == pytest.approx(0.7, rel=1e-12)
+
+
 def test_adapted_smoothness_follows_the_first_reweighted_map_and_is_reported(sun_scene):
     """The default's smoothness after its first reweighted solve is `smooth * spread_factor(x_1)`: larger
     under a sun (light in a few cells) than under an overcast sky, and `sol.smooth` says which."""

@@ -3,7 +3,6 @@
 from ._illumination import DEFAULT_RIDGE as DEFAULT_RIDGE
 from ._illumination import DEFAULT_SMOOTH as DEFAULT_SMOOTH
 from ._illumination import DEFAULT_PRIOR as DEFAULT_PRIOR
-from ._illumination import REFERENCE_CELLS as REFERENCE_CELLS
 from .._qp import DampedNewton as DampedNewton
 from ._illumination import L2Prior as L2Prior
 from ._illumination import Prior as Prior
@@ -20,6 +19,7 @@ from ._illumination import gram_matrix as gram_matrix
 from ._illumination import normal_matrix as normal_matrix
 from ._illumination import prior_matrix as prior_matrix
 from ._illumination import regularization_weights as regularization_weights
+from ._illumination import relative_smooth as relative_smooth
 from ._solve import solve_illumination as solve_illumination
 from ._matrix_free import MatrixFree as MatrixFree
 from ._matrix_free import solve_matrix_free as solve_matrix_free

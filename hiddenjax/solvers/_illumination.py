@@ -251,6 +251,16 @@ def regularization_weights(T, smooth, ridge, absolute: bool = False):
     return smooth * scale * finer**2, ridge * scale * finer
 
 
+def relative_smooth(grid, smooth, ridge, relative_ridge):
+    """The relative smoothness of absolute weights `(smooth, ridge)` whose ridge was `relative_ridge` (relative).
+
+    Both share `regularization_weights`' scale, so `smooth_rel = relative_ridge * smooth / (ridge r)`
+    with `r = max(1, N / 2048)`: no pass over `A` (for a solution's `sol.smooth`, `sol.ridge`, whose
+    smoothness a prior may have chosen from the photo).
+    """
+    return relative_ridge * smooth / (ridge * max(1.0, grid.size / REFERENCE_CELLS))
+
+
 def _sharded(t) -> bool:
     """A `TransportMatrix` whose rows are split over several devices (`hj.transport.shard`)? Never under `jit`."""
     return isinstance(t, TransportMatrix) and not isinstance(t.A, jax.core.Tracer) and row_mesh_of(t.A) is not None
