@@ -155,8 +155,7 @@ class Objective(eqx.Module):
         def prior(w):
             return scale * (self.prior.smooth * weighted_laplacian(self.grid, w) + self.prior.ridge * eye)
 
-        maps = []
-        for x in self.skies:  # a few skies: unrolled
+        def one(x):
             c = A.T @ (A @ x)
             B0 = gram + prior(jnp.ones(edges, A.dtype))
             x_k = _nonneg_solve(B0, c)
@@ -166,16 +165,15 @@ class Objective(eqx.Module):
                     x_k = _nonneg_solve(B0, c)
             for _ in range(self.prior.reweight):
                 x_k = _nonneg_solve(gram + prior(log_domain_weights(self.grid, x_k, self.prior.floor)), c)
-            maps.append(x_k)
-        return jnp.stack(maps)
+            return x_k
+
+        return jax.lax.map(one, self.skies)  # one sky at a time: compiled once, memory of one
 
     def _reconstruction(self, A: Float[Array, "P N"]) -> Float[Array, ""]:
-        errors = []
-        for x, x_est in zip(self.skies, self.estimates(A)):
-            m = jnp.mean(x[self.band])
-            t = lambda v: (v / m) / (1.0 + v / m)  # noqa: E731
-            errors.append(jnp.sum((t(x_est[self.band]) - t(x[self.band])) ** 2) / jnp.sum(t(x[self.band]) ** 2))
-        return jnp.mean(jnp.stack(errors))
+        truth, estimate = self.skies[:, self.band], self.estimates(A)[:, self.band]  # (S, b)
+        m = jnp.mean(truth, axis=1, keepdims=True)
+        t = lambda v: (v / m) / (1.0 + v / m)  # noqa: E731
+        return jnp.mean(jnp.sum((t(estimate) - t(truth)) ** 2, axis=1) / jnp.sum(t(truth) ** 2, axis=1))
 
 
 def _nonneg_solve(B: Float[Array, "N N"], c: Float[Array, " N"]) -> Float[Array, " N"]:
