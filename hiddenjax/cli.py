@@ -14,9 +14,9 @@
                           (--intrinsics camera.toml | --fov DEG) [--times T...] -o out/
     hiddenjax video A.npz clip.mp4 -o maps/ [--background median|first] [--video maps.mp4]
     hiddenjax design -o out/ [--quick] [--objective a_optimal|d_optimal|expected_error|reconstruction]
-                     [--shape heightfield|boxes|cylinders] [--count K] [--temperature START END]
-                     [--steps N] [--footprint M] [--height M] [--controls G] [--seed S] [--grid H W]
-                     [--skies PANORAMA...]
+                     [--shape heightfield|boxes|cylinders|voxels] [--count K] [--cells N]
+                     [--temperature START END] [--steps N] [--footprint M] [--height M] [--controls G]
+                     [--seed S] [--grid H W] [--skies PANORAMA...] [--rotations N] [--resample N]
 
 Exit status 0 on success, 1 when the input is bad (one line on stderr says what and how to fix
 it; no output file is left behind), 2 for a malformed command line.
@@ -41,7 +41,7 @@ from . import io
 from . import metrics
 from . import photo as _photo
 from . import shadows as _shadows
-from .scene import EnvGrid, Scene, fixture, object_on_plane, procedural_sky
+from .scene import EnvGrid, Scene, fixture, object_on_plane, procedural_sky, rotate_azimuth
 from .solvers import (DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior,
                       regularization_weights, relative_smooth, solve_illumination)
 from ._scene_file import load_scene
@@ -400,10 +400,12 @@ def design(args) -> dict:
         raise ValueError(f"--temperature takes START END in 1/m with 0 < START <= END, got {t0:g} {t1:g}")
     size = 20 if args.quick else 32
     grid = EnvGrid(*args.grid)
-    if args.skies:
-        skies = np.stack([grid.downsample(io.read_image(path)) for path in args.skies])
-    else:
-        skies = np.stack([grid.downsample(procedural_sky(64, 128, sun=sun, seed=k)) for k, sun in enumerate(DESIGN_SUNS)])
+    if args.rotations < 1:
+        raise ValueError(f"--rotations must be at least 1 (each sky once, unturned), got {args.rotations}")
+    panoramas = ([io.read_image(path) for path in args.skies] if args.skies
+                 else [procedural_sky(64, 128, sun=sun, seed=k) for k, sun in enumerate(DESIGN_SUNS)])
+    skies = np.stack([grid.downsample(rotate_azimuth(p, 360.0 * k / args.rotations))
+                      for p in panoramas for k in range(args.rotations)])
     problem = _design.DesignProblem.build(shape, grid, kind=args.objective, width=size, height=size, skies=skies,
                                           samples=samples, seed=args.seed)
 
@@ -411,8 +413,10 @@ def design(args) -> dict:
         if not args.quiet and (k % 10 == 0 or k == steps - 1):
             print(f"step {k:3d}  T {temperature:7.1f}  objective {value:.5g}", flush=True)
 
+    if args.resample < 1:
+        raise ValueError(f"--resample must be at least 1 (draws of the direction samples), got {args.resample}")
     result = _design.design_occluder(problem, steps, key=jax.random.key(args.seed), callback=progress,
-                                     temperatures=(t0, t1))
+                                     temperatures=(t0, t1), resample=args.resample)
     mesh = result.mesh()
     out.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(out / "design.stl") as tmp:
@@ -449,7 +453,8 @@ def design(args) -> dict:
                     cells=args.cells, samples=samples,
                     temperature=[t0, t1], image=size,
                     grid=list(grid.shape),
-                    seed=args.seed, skies=[str(p) for p in args.skies] if args.skies else "procedural"),
+                    seed=args.seed, skies=[str(p) for p in args.skies] if args.skies else "procedural",
+                    rotations=args.rotations, resample=args.resample),
         seconds=round(result.seconds, 1),
         history=[float(v) for v in result.history],
         hard_objective=scores,
@@ -755,6 +760,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--skies", nargs="+", metavar="PANORAMA",
                    help="lat-long panoramas (.hdr/.exr) the expected_error and reconstruction objectives average "
                         "over (default: six procedural skies)")
+    p.add_argument("--rotations", type=int, default=1,
+                   help="each sky at this many azimuths, 360/N degrees apart, so that the design cannot fit where "
+                        "the training skies' bright regions happen to stand (default 1: as given)")
+    p.add_argument("--resample", type=int, default=1,
+                   help="draws of the direction samples the steps take in turn, so that the shape cannot fit "
+                        "the few directions one draw has per cell (default 1)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     p.set_defaults(run=design)
 

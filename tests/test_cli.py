@@ -222,6 +222,8 @@ def test_demo_quick(tmp_path):
         (("--shape", "voxels", "--cells", "0"), "cells must be a positive integer"),
         (("--shape", "voxels", "--samples", "0"), "--samples must be at least 1"),
         (("--temperature", "300", "30"), "0 < START <= END"),
+        (("--rotations", "0"), "--rotations must be at least 1"),
+        (("--resample", "0"), "--resample must be at least 1"),
     ],
 )
 def test_design_bad_input_one_line_no_output(tmp_path, capsys, args, words):
@@ -235,9 +237,10 @@ def test_design_voxels_end_to_end(tmp_path):
     """`hiddenjax design --shape voxels --quick`: the voxel defaults (8 directions, 30 to 30000/m),
     a watertight STL inside the 10 cm cube, every fixture scored on the hard check."""
     assert main(["design", "-o", str(tmp_path), "--quick", "--shape", "voxels", "--cells", "4", "--steps", "2",
-                 "-q"]) == 0
+                 "--rotations", "2", "--resample", "2", "-q"]) == 0
     results = json.loads((tmp_path / "design.json").read_text())
     assert results["config"]["samples"] == 8 and results["config"]["temperature"] == [30.0, 30000.0]
+    assert results["config"]["rotations"] == 2 and results["config"]["resample"] == 2
     assert results["mesh"]["watertight"]
     np.testing.assert_array_less(np.abs(results["mesh"]["bounds"]), 0.1 + 1e-9)
     assert set(results["hard_objective"]) == {"design", "teapot", "sphere", "coded_aperture", "box"}

@@ -111,6 +111,34 @@ def test_downsample_preserves_power_and_constants():
         grid.downsample(np.full((8, 16), np.nan))
 
 
+def test_rotate_azimuth_turns_the_light_about_up_and_keeps_its_power():
+    """Whole columns: the light's power-weighted mean direction turns by `R_y(delta)` (phi -> phi + delta,
+    so `d = (sin phi sin theta, cos theta, -cos phi sin theta)` turns as `x' = x cos + (-z) sin`), the power is
+    the same, 360 degrees is the identity and two turns compose; a fractional turn moves the light
+    between the two whole ones."""
+    grid = hj.EnvGrid(16, 32)
+    pano = hj.scenes.procedural_sky(16, 32, sun=(0.7, 1.0))
+    power = lambda m: np.einsum("ij,ijc->c", grid.solid_angles(), m)
+    mean_dir = lambda m: np.einsum("ij,ij,ijk->k", grid.solid_angles(), m.mean(-1), grid.directions())
+    for degrees in (45.0, 90.0, 270.0):
+        turned = hj.scene.rotate_azimuth(pano, degrees)
+        a = np.radians(degrees)
+        x, y, z = mean_dir(pano)
+        np.testing.assert_allclose(mean_dir(turned), [x * np.cos(a) - z * np.sin(a), y, z * np.cos(a) + x * np.sin(a)],
+                                   atol=1e-6 * np.abs(mean_dir(pano)).max() + 1e-6)
+        np.testing.assert_allclose(power(turned), power(pano), rtol=1e-6)
+    np.testing.assert_array_equal(hj.scene.rotate_azimuth(pano, 360.0), pano)
+    np.testing.assert_allclose(hj.scene.rotate_azimuth(hj.scene.rotate_azimuth(pano, 22.5), 67.5),
+                               hj.scene.rotate_azimuth(pano, 90.0))
+    phi = lambda m: np.arctan2(mean_dir(m)[0], -mean_dir(m)[2])
+    between = phi(hj.scene.rotate_azimuth(pano, 50.0))  # 4.44 columns of 11.25 degrees
+    assert phi(hj.scene.rotate_azimuth(pano, 45.0)) < between < phi(hj.scene.rotate_azimuth(pano, 56.25))
+    with pytest.raises(ValueError, match="degrees must be finite"):
+        hj.scene.rotate_azimuth(pano, np.nan)
+    with pytest.raises(ValueError, match="panorama must be"):
+        hj.scene.rotate_azimuth(np.ones(5), 10.0)
+
+
 def test_bad_grid_sizes():
     for h, w in [(0, 8), (4, 1), (4.5, 8)]:
         with pytest.raises(ValueError):

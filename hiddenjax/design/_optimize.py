@@ -116,15 +116,21 @@ class DesignProblem(eqx.Module):
         leaves visible, so they do not change as the design does. `samples` directions per env
         cell (shared by all points), as `SoftTransport.from_scene`.
         """
-        box = trimesh.creation.box([shape.footprint, shape.height, shape.footprint])
-        setup = stage(box, shape.footprint, width=width, height=height, elevation=elevation)
-        soft = SoftTransport.from_scene(setup.scene, setup.camera, grid, samples=samples, seed=seed)
-        plane = np.asarray(setup.scene[0].triangles, np.float32)
-        visibility = (VoxelVisibility.build(shape, soft) if isinstance(shape, Voxels)
-                      else TriangleVisibility.build(shape, plane))
+        soft, plane, visibility, camera = _cast(shape, grid, width, height, samples, elevation, seed)
         objective = Objective.build(_bare_matrix(soft, plane), grid, kind, prior=prior, band=band, skies=skies,
                                     noise=noise)
-        return cls(shape, soft, jnp.asarray(plane), visibility, objective, setup.camera, grid, float(elevation))
+        return cls(shape, soft, jnp.asarray(plane), visibility, objective, camera, grid, float(elevation))
+
+    def resampled(self, seed: int) -> "DesignProblem":
+        """The same problem on a fresh draw of the direction samples (`seed`), the objective kept.
+
+        The objective's prior weights stay those fixed on the first draw's bare plane, so every
+        draw scores a candidate on the same scale; only the stratified directions the soft
+        transport sees change.
+        """
+        soft, plane, visibility, _ = _cast(self.shape, self.grid, self.camera.width, self.camera.height,
+                                           self.soft.samples, self.elevation, seed)
+        return eqx.tree_at(lambda p: (p.soft, p.plane, p.visibility), self, (soft, jnp.asarray(plane), visibility))
 
     def bare_matrix(self) -> Float[Array, "P N"]:
         """`A` of the plane alone (no occluder): the reference the prior's weights are fixed on."""
@@ -161,6 +167,18 @@ class DesignProblem(eqx.Module):
         return self.evaluate(self.hard_matrix(mesh, **kwargs).A)
 
 
+def _cast(shape, grid: EnvGrid, width: int, height: int, samples: int, elevation: float, seed: int):
+    """The stage's soft transport (its footprint rays cast by Embree, `samples` directions per cell drawn
+    with `seed`), the plane's triangles, the shape's visibility on them, and the camera."""
+    box = trimesh.creation.box([shape.footprint, shape.height, shape.footprint])
+    setup = stage(box, shape.footprint, width=width, height=height, elevation=elevation)
+    soft = SoftTransport.from_scene(setup.scene, setup.camera, grid, samples=samples, seed=seed)
+    plane = np.asarray(setup.scene[0].triangles, np.float32)
+    visibility = (VoxelVisibility.build(shape, soft) if isinstance(shape, Voxels)
+                  else TriangleVisibility.build(shape, plane))
+    return soft, plane, visibility, setup.camera
+
+
 def _bare_matrix(soft: SoftTransport, plane) -> Float[Array, "P N"]:
     """The soft transport with the plane's own triangles as the only occluder: exact, nothing occludes."""
     return soft.matrix(Occluder.from_triangles(plane, np.zeros(len(plane), int)))
@@ -191,7 +209,7 @@ class Design(eqx.Module):
 
 def design_occluder(problem: DesignProblem, steps: int = 60, *, learning_rate: float = 0.2,
                     temperatures: tuple[float, float] = (30.0, 3000.0), theta0=None, key=None,
-                    callback=None) -> Design:
+                    callback=None, resample: int = 1) -> Design:
     """Minimize `problem.loss` over the shape parameters with Adam, annealing the temperature.
 
     The temperature runs geometrically from `temperatures[0]` to `[1]` (1/m) over the first 80%
@@ -201,6 +219,10 @@ def design_occluder(problem: DesignProblem, steps: int = 60, *, learning_rate: f
     fins that help the soft objective did not help under hard shadows
     (docs/experiments/design.md). `theta0` defaults to `problem.shape.init(key)` (`key`
     defaults to `jax.random.key(0)`). `callback(step, value, temperature)` is called after each step.
+    `resample > 1`: step `k` sees draw `k mod resample` of the direction samples (`problem` the
+    first, `problem.resampled(soft.seed + d)` the others): the steps average over more directions
+    than one draw holds, so the shape cannot fit the few each cell has (slits and pinholes
+    between them).
     """
     if not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
@@ -209,6 +231,8 @@ def design_occluder(problem: DesignProblem, steps: int = 60, *, learning_rate: f
         raise ValueError(f"temperatures must be (start, end) with 0 < start <= end, got {temperatures}")
     if not (learning_rate > 0 and math.isfinite(learning_rate)):
         raise ValueError(f"learning_rate must be positive, got {learning_rate}")
+    if not isinstance(resample, int) or resample < 1:
+        raise ValueError(f"resample must be an integer >= 1 (draws of the direction samples), got {resample!r}")
     key = jax.random.key(0) if key is None else key
     theta = problem.shape.init(key) if theta0 is None else jnp.asarray(theta0, jnp.float32)
     anneal = max(1, int(0.8 * steps))
@@ -229,8 +253,9 @@ def design_occluder(problem: DesignProblem, steps: int = 60, *, learning_rate: f
     state = optimizer.init(theta)
     history, best, best_value = [], theta, np.inf
     start = time.perf_counter()
+    draws = [problem] + [problem.resampled(problem.soft.seed + d) for d in range(1, resample)]
     for k, T in enumerate(schedule):
-        new, state, value = step(problem, theta, state, jnp.float32(T))
+        new, state, value = step(draws[k % resample], theta, state, jnp.float32(T))
         value = float(value)
         if not np.isfinite(value):
             raise FloatingPointError(f"the objective became {value} at step {k} (temperature {T}); "

@@ -267,6 +267,25 @@ class EnvGrid(eqx.Module):
         return np.moveaxis(out, -1, 1).astype(np.float32)
 
 
+def rotate_azimuth(panorama, degrees: float) -> np.ndarray:
+    """The lat-long panorama `(H, W[, C])` of the world turned by `degrees` about +y (up).
+
+    `L'(theta, phi) = L(theta, phi - delta)`, `delta` = `degrees` (towards increasing `phi`): a
+    shift of `s = W delta / 360` columns, periodic, linear between the two nearest columns when
+    `s` is fractional (exact, and power-preserving, for whole columns). Turning the sky is turning
+    the scene under it the other way: a skies' distribution that holds every azimuth.
+    """
+    pano = np.asarray(panorama)
+    if pano.ndim not in (2, 3) or pano.shape[0] < 1 or pano.shape[1] < 1:
+        raise ValueError(f"panorama must be (H, W) or (H, W, C), got shape {pano.shape}")
+    if not np.isfinite(degrees):
+        raise ValueError(f"degrees must be finite, got {degrees}")
+    shift = (float(degrees) / 360.0 * pano.shape[1]) % pano.shape[1]
+    whole, part = int(np.floor(shift)), shift - np.floor(shift)
+    turned = np.roll(pano, whole, axis=1)
+    return turned if part == 0 else ((1 - part) * turned + part * np.roll(turned, 1, axis=1)).astype(pano.dtype)
+
+
 def _overlap(coarse: np.ndarray, fine: np.ndarray) -> np.ndarray:
     """Length of overlap between each coarse interval and each fine interval, `(nc, nf)`."""
     lo = np.maximum(coarse[:-1, None], fine[None, :-1])
