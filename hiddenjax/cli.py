@@ -402,6 +402,8 @@ def design(args) -> dict:
     grid = EnvGrid(*args.grid)
     if args.rotations < 1:
         raise ValueError(f"--rotations must be at least 1 (each sky once, unturned), got {args.rotations}")
+    if args.resample < 1:
+        raise ValueError(f"--resample must be at least 1 (draws of the direction samples), got {args.resample}")
     panoramas = ([io.read_image(path) for path in args.skies] if args.skies
                  else [procedural_sky(64, 128, sun=sun, seed=k) for k, sun in enumerate(DESIGN_SUNS)])
     skies = np.stack([grid.downsample(rotate_azimuth(p, 360.0 * k / args.rotations))
@@ -413,8 +415,6 @@ def design(args) -> dict:
         if not args.quiet and (k % 10 == 0 or k == steps - 1):
             print(f"step {k:3d}  T {temperature:7.1f}  objective {value:.5g}", flush=True)
 
-    if args.resample < 1:
-        raise ValueError(f"--resample must be at least 1 (draws of the direction samples), got {args.resample}")
     result = _design.design_occluder(problem, steps, key=jax.random.key(args.seed), callback=progress,
                                      temperatures=(t0, t1), resample=args.resample)
     mesh = result.mesh()

@@ -271,9 +271,9 @@ def rotate_azimuth(panorama, degrees: float) -> np.ndarray:
     """The lat-long panorama `(H, W[, C])` of the world turned by `degrees` about +y (up).
 
     `L'(theta, phi) = L(theta, phi - delta)`, `delta` = `degrees` (towards increasing `phi`): a
-    shift of `s = W delta / 360` columns, periodic, linear between the two nearest columns when
-    `s` is fractional (exact, and power-preserving, for whole columns). Turning the sky is turning
-    the scene under it the other way: a skies' distribution that holds every azimuth.
+    periodic shift of `s = W delta / 360` columns, exact for whole columns and linear between the
+    two nearest ones when `s` is fractional (power-preserving either way: the weights sum to one).
+    Turning the sky one way is turning the scene under it the other way.
     """
     pano = np.asarray(panorama)
     if pano.ndim not in (2, 3) or pano.shape[0] < 1 or pano.shape[1] < 1:
