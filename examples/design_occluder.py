@@ -105,7 +105,8 @@ def main(argv=None):
     for name, obj, held, tm, ssim, rel in rows:
         print(f"{name:>15} {obj:27.4g} {held:10.4g} {tm:8.3f} {ssim:6.3f} {rel:8.3f}")
     results = dict(config=dict(quick=args.quick, objective=args.objective, shape=args.shape, controls=args.controls,
-                               cells=args.cells, rotations=args.rotations, resample=args.resample, steps=8 if args.quick else args.steps,
+                               cells=args.cells, rotations=args.rotations, resample=args.resample,
+                               steps=8 if args.quick else args.steps,
                                temperature=designed["config"]["temperature"], trained_on=list(train),
                                held_back=list(names), study_prior=args.study_prior,
                                image=size,
