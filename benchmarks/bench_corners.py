@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import matplotlib
 import numpy as np
 
+import hiddenjax as hj
 import hiddenjax.corners as hc
 from _report import Table, finish_plot  # noqa: E402
 
@@ -43,6 +44,7 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out/bench_corners"))
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     quick = args.quick
     size = 24 if quick else 64

@@ -12,11 +12,15 @@ the public functions as the guides do, "jit" compiles the whole computation as o
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+# Child processes compute too: on a GPU the parent must not take JAX's default 75% of its memory first.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import jax
 import numpy as np
@@ -84,6 +88,7 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out/bench_cues"))
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     q = args.quick
     size, grid = (48, hj.EnvGrid(8, 16)) if q else (128, hj.EnvGrid(32, 64))

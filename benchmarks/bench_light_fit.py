@@ -112,6 +112,7 @@ def main(argv=None):
                     help="single lights, several at once, both (the starts are the same either way), or a "
                          "textured table with a reference photo")
     args = ap.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     size, fixtures, lights = (48, ["sphere"], LIGHTS[:1]) if args.quick else (128, ["teapot", "sphere", "coded_aperture"],
                                                                                LIGHTS)

@@ -19,12 +19,16 @@ processes. Writes `scale.png` (the maps) and `results.json`.
 
 import argparse
 import json
+import os
 import resource
 import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+# Child processes compute too: on a GPU the parent must not take JAX's default 75% of its memory first.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import numpy as np
 
@@ -45,6 +49,8 @@ def peak_gib() -> float:
 def one(args):
     """One grid in this process: build, solve, score; prints a JSON line."""
     import hiddenjax as hj
+
+    hj.enable_compilation_cache()
 
     h, w = parse_grid(args.one)
     grid = hj.EnvGrid(h, w)
@@ -128,6 +134,8 @@ def main(argv=None):
         return one(args)
 
     import hiddenjax as hj
+
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
 
     grids = [parse_grid(g) for g in (args.grids or ("8x16,16x32" if args.quick else
                                                      "32x64,64x128,128x256,256x512")).split(",")]

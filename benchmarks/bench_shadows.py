@@ -73,6 +73,7 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=Path("out/bench_shadows"))
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     size, sections = (48, 32) if args.quick else (128, 80)
     scene, cam, shadows = setup(sections, size)

@@ -44,6 +44,7 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--adam-seconds", type=float, default=None, help="time budget for Adam")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     q = args.quick
     size, grid = (48, hj.EnvGrid(8, 16)) if q else (128, hj.EnvGrid(32, 64))

@@ -41,6 +41,7 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out/bench_video"))
     parser.add_argument("--quick", action="store_true", help="fewer frames")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     count = 200 if args.quick else 1000
     grid = hj.EnvGrid(16, 32)

@@ -49,6 +49,7 @@ def main(argv=None):
     parser.add_argument("--folds", type=int, default=4)
     parser.add_argument("--no-cv", action="store_true", help="skip cross-validation (the slow part: 4 folds x weights)")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     if args.block < 1 or args.folds < 2:
         parser.error(f"--block must be >= 1 pixel and --folds >= 2, got {args.block} and {args.folds}")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -58,6 +58,7 @@ def main(argv=None):
                         help="the object reflects the lamp (default) or glows uniformly (the thesis' emitter)")
     parser.add_argument("--test-scenes", type=int, default=None, help="new scenes refined per class (default 4)")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     quick = args.quick
     size = 32 if quick else (args.size or 128)
     pool = 2 if size >= 128 else 1

@@ -55,6 +55,7 @@ def main(argv=None):
                         help="the study's solve: the prior the design was optimized with (hdr_prior(adapt=0.0)) "
                              "or the solver's default (hdr_prior())")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
 
     train, held_back = (NAMES[:1], NAMES[4:6]) if args.quick else (NAMES[:4], NAMES[4:])

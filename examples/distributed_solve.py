@@ -56,6 +56,8 @@ def main(argv=None):
 
     import hiddenjax as hj
 
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
+
     size, grid = (48, hj.EnvGrid(16, 32)) if args.quick else (128, hj.EnvGrid(32, 64))
     setup = hj.scenes.object_on_plane("teapot", width=size, height=size)
     sky = hj.scenes.procedural_sky(64 if args.quick else 256, 128 if args.quick else 512)

@@ -48,6 +48,7 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="two noise levels, 10 draws (seconds)")
     parser.add_argument("--draws", type=int, default=None, help="noise draws per level (default 100)")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     levels = [0.01, 0.03] if args.quick else [0.0025, 0.005, 0.01, 0.02, 0.03, 0.05]
     draws = args.draws or (10 if args.quick else 100)

@@ -44,6 +44,7 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="small configuration (seconds)")
     parser.add_argument("--seeds", type=int, default=None, help="noise draws per level (default 3, quick 1)")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     size, grid = (48, hj.EnvGrid(8, 16)) if args.quick else (128, hj.EnvGrid(32, 64))
     seeds = args.seeds or (1 if args.quick else 3)

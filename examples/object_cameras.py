@@ -43,6 +43,7 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out/object_cameras"))
     parser.add_argument("--quick", action="store_true", help="small configuration (seconds)")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     size, grid = (48, hj.EnvGrid(8, 16)) if args.quick else (128, hj.EnvGrid(32, 64))
     samples = 4 if args.quick else 16

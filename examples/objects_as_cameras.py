@@ -24,6 +24,7 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="small configuration (seconds)")
     parser.add_argument("--mesh", default="teapot", help="fixture name or mesh file (default teapot)")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
 
     size, grid = (64, hj.EnvGrid(16, 32)) if args.quick else (128, hj.EnvGrid(32, 64))
     samples, pixel_samples = (8, 1) if args.quick else (hj.transport.DEFAULT_SAMPLES, hj.transport.DEFAULT_PIXEL_SAMPLES)

@@ -69,6 +69,7 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="small configuration (about a minute)")
     parser.add_argument("--hdri", default="immenstadter_horn", help="development HDRI in data_fixtures/hdri")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     W, H = (480, 360) if args.quick else (640, 480)

@@ -62,6 +62,7 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out/sampling_study"))
     parser.add_argument("--quick", action="store_true", help="small configuration (seconds)")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     q = args.quick
     size = 48 if q else 128

@@ -68,6 +68,7 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out/shadow_projections"))
     parser.add_argument("--quick", action="store_true", help="smaller image (seconds)")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     size = (256, 128) if args.quick else (512, 256)
 

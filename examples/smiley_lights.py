@@ -60,6 +60,7 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out/smiley_lights"))
     parser.add_argument("--quick", action="store_true", help="small image, few steps (seconds)")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     size, steps = (32, 20) if args.quick else (48, 200)
 

@@ -71,6 +71,7 @@ def main(argv=None):
                         help="also fit the teapot's pixels this many pixels inside its silhouette "
                              "(default: the table's only)")
     args = parser.parse_args(argv)
+    hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     quick = args.quick
     pick = lambda value, default: default if value is None else value  # an explicit 0 is checked, not replaced
     size, height = pick(args.size, 16 if quick else 32), pick(args.grid, 6 if quick else 8)

@@ -7,6 +7,10 @@ mantissa), which moves camera projections by hundredths of a pixel and breaks th
 equations of the solvers. Importing hiddenjax therefore sets `jax_default_matmul_precision` to
 "float32" unless it was already chosen (by `JAX_DEFAULT_MATMUL_PRECISION` or `jax.config`);
 code that wants TF32 back for its own work can use `with jax.default_matmul_precision("tensorfloat32")`.
+
+Compiled programs: `hj.enable_compilation_cache()` keeps them on disk in the user's cache folder,
+so a later process loads them instead of compiling (the `hiddenjax` command, the examples and the
+benchmarks call it; importing hiddenjax does not).
 """
 
 import jax as _jax
@@ -23,6 +27,9 @@ from . import photo as photo
 from . import scene as scenes
 from . import shadows as shadows
 from . import solvers as solvers
+from ._compilation_cache import compilation_cache_dir as compilation_cache_dir
+from ._compilation_cache import default_cache_dir as default_cache_dir
+from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._scene_file import SceneFile as SceneFile
 from ._scene_file import load_scene as load_scene
 from .scene import Camera as Camera

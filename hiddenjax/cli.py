@@ -44,6 +44,7 @@ from . import shadows as _shadows
 from .scene import EnvGrid, Scene, fixture, object_on_plane, procedural_sky, rotate_azimuth
 from .solvers import (DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior,
                       regularization_weights, relative_smooth, solve_illumination)
+from ._compilation_cache import enable_compilation_cache
 from ._scene_file import load_scene
 from .transport import (TransportMatrix, TransportOperator, reference_render, render, render_point_lights,
                         transport_matrix, transport_operator)
@@ -860,6 +861,7 @@ def main(argv=None) -> int:
         with warnings.catch_warnings():
             warnings.showwarning = show
             warnings.simplefilter("always", UserWarning)
+            enable_compilation_cache()  # before the first program: compiled once per machine (HIDDENJAX_CACHE=off)
             args.run(args)
     except (ValueError, OSError) as e:
         message = " ".join(str(e).split())  # one line

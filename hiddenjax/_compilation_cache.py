@@ -1,0 +1,118 @@
+"""JAX's persistent compilation cache in the user's cache folder: compile a program once per machine.
+
+Compiling, not running, is most of a fresh call's time on a CPU (a first `hiddenjax demo --quick`
+spends most of its seconds in XLA). JAX can keep every compiled program on disk, keyed by the
+program, its compile options, the device and the jax/jaxlib versions, and load it in a later
+process instead of compiling again. Importing hiddenjax never turns this on (it is JAX's global
+configuration, the user's to choose); the `hiddenjax` command, the examples and the benchmarks call
+`enable_compilation_cache()` first, and a library user can do the same in one line.
+
+The cache holds executables that JAX runs without checking them, so it must be a folder only its
+owner can write: the default is private (mode 0700) under the platform's cache folder, one per jax
+version; a folder that others can write, or that cannot be written, is a warning and a run without
+the cache. With the `filelock` package (a dependency) JAX's reads and writes take a lock, so
+processes filling one cache at once (test workers, a benchmark's children) do not read each
+other's half-written entries. On GPUs XLA's per-fusion autotuning results are kept beside it
+(JAX's `jax_persistent_cache_enable_xla_caches` default).
+
+`HIDDENJAX_CACHE` moves the cache (a folder) or turns it off (`off`, `0`, `false`, `no`); a cache
+chosen through JAX itself (`JAX_COMPILATION_CACHE_DIR` or `jax.config`) is left as it is.
+"""
+
+import os
+import stat
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import jax
+
+ENVIRONMENT = "HIDDENJAX_CACHE"
+OFF = ("off", "0", "false", "no", "none")
+MAX_BYTES = 4 << 30  # JAX evicts the least recently used programs past this (and then reads and writes take a lock)
+
+
+def default_cache_dir() -> Path:
+    """The platform's per-user cache folder for hiddenjax's compiled programs, one per jax version.
+
+    Linux and other Unix: `$XDG_CACHE_HOME/hiddenjax/jax-VERSION` (default `~/.cache`); macOS:
+    `~/Library/Caches/hiddenjax/jax-VERSION`; Windows: `%LOCALAPPDATA%\\hiddenjax\\jax-VERSION`.
+    """
+    if sys.platform == "darwin":
+        base = Path.home() / "Library" / "Caches"
+    elif os.name == "nt":
+        base = Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local")
+    else:
+        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "hiddenjax" / f"jax-{jax.__version__}"
+
+
+def compilation_cache_dir() -> Path | None:
+    """The folder of JAX's persistent compilation cache in this process, or None when it is off."""
+    path = jax.config.jax_compilation_cache_dir
+    return Path(path) if path and jax.config.jax_enable_compilation_cache else None
+
+
+def enable_compilation_cache(path=None) -> Path | None:
+    """Keep compiled programs on disk, so a later process loads them instead of compiling (JAX's persistent cache).
+
+    **Arguments:**
+    - `path`: the cache folder; default `HIDDENJAX_CACHE` if set (a folder, or `off`), else
+      `default_cache_dir()`. It is created private to its owner (mode 0700).
+
+    **Returns:** the folder in use, or None when the cache stays off (turned off, or the folder is
+    not usable: then a warning says why and the run goes on compiling as usual). A cache already
+    set through JAX (`JAX_COMPILATION_CACHE_DIR`, `jax.config`) is kept and returned. Every
+    program is cached however briefly it compiled (most of a first call's programs take well under
+    JAX's default threshold of a second each). Call it before the first computation: JAX reads the
+    setting when it first compiles.
+    """
+    if path is None and compilation_cache_dir() is not None:
+        return compilation_cache_dir()
+    if path is None:
+        chosen = os.environ.get(ENVIRONMENT, "").strip()
+        if chosen.lower() in OFF:
+            return None
+        path = chosen or default_cache_dir()
+    folder = Path(path).expanduser()
+    problem = _unusable(folder)
+    if problem:
+        warnings.warn(f"compiled programs will not be cached: {problem} (set {ENVIRONMENT} to another folder, "
+                      f"or to 'off')", RuntimeWarning, stacklevel=2)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    if _has_filelock():
+        jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    return folder
+
+
+def _unusable(folder: Path) -> str | None:
+    """Why `folder` cannot hold a trusted cache (created if missing), or None."""
+    try:
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as e:
+        return f"cannot create {folder} ({e.strerror or e})"
+    if not folder.is_dir():
+        return f"{folder} is not a folder"
+    info = folder.stat()
+    if hasattr(os, "getuid") and info.st_uid != os.getuid():
+        return f"{folder} belongs to another user (a shared cache would run programs they wrote)"
+    if info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return f"{folder} can be written by other users (a shared cache would run programs they wrote)"
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-test-"):
+            pass
+    except OSError as e:
+        return f"cannot write to {folder} ({e.strerror or e})"
+    return None
+
+
+def _has_filelock() -> bool:
+    try:
+        import filelock  # noqa: F401  (JAX's cache takes its lock when a maximum size is set)
+    except ImportError:
+        return False
+    return True

@@ -1,0 +1,104 @@
+"""The persistent compilation cache: off on import, on in one call, private, shared safely, and a warning when unusable."""
+
+import json
+import os
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+import hiddenjax as hj
+from hiddenjax._compilation_cache import _unusable
+
+# A small program under the cache; prints what JAX's monitoring saw (hits, compilations) and the result.
+PROBE = """
+import json, sys
+import jax
+from jax import monitoring
+events = []
+monitoring.register_event_listener(lambda name, **kw: events.append(name))
+import hiddenjax as hj
+import jax.numpy as jnp
+before = None if jax.config.jax_compilation_cache_dir is None else str(jax.config.jax_compilation_cache_dir)
+folder = hj.enable_compilation_cache()
+x = jax.jit(lambda a: jnp.linalg.cholesky(a @ a.T + 3 * jnp.eye(a.shape[0])).sum())(jnp.arange(36.0).reshape(6, 6) / 36)
+print(json.dumps(dict(before=before, folder=None if folder is None else str(folder), value=float(x),
+                      hits=events.count("/jax/compilation_cache/cache_hits"),
+                      misses=events.count("/jax/compilation_cache/cache_misses"))))
+"""
+
+
+def probe(env_cache, extra_env=None):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")
+           and not k.startswith("JAX_PERSISTENT_CACHE")}
+    env.update(JAX_PLATFORMS="cpu", **({} if env_cache is None else {"HIDDENJAX_CACHE": str(env_cache)}),
+               **(extra_env or {}))
+    done = subprocess.run([sys.executable, "-c", PROBE], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1]), done.stderr
+
+
+def test_import_leaves_jax_alone_and_a_second_process_loads_the_program(tmp_path):
+    cache = tmp_path / "cache"
+    first, _ = probe(cache)
+    assert first["before"] is None  # importing hiddenjax set no cache
+    assert first["folder"] == str(cache) and first["hits"] == 0 and first["misses"] >= 1
+    assert oct(cache.stat().st_mode & 0o777) == oct(0o700)  # private: the cache is trusted
+    assert [p for p in cache.iterdir() if p.name.endswith("-cache")], "no program written"
+    second, _ = probe(cache)
+    assert second["hits"] >= 1 and second["misses"] == 0
+    assert second["value"] == first["value"]
+
+
+def test_off_and_default_folder(tmp_path):
+    off, _ = probe("off")
+    assert off["folder"] is None and off["hits"] == 0
+    default, _ = probe(None, dict(XDG_CACHE_HOME=str(tmp_path)))
+    assert Path(default["folder"]).parent == tmp_path / "hiddenjax"
+    assert Path(default["folder"]).name.startswith("jax-")
+
+
+def test_concurrent_processes_fill_one_cache(tmp_path):
+    cache = tmp_path / "shared"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
+    env.update(JAX_PLATFORMS="cpu", HIDDENJAX_CACHE=str(cache))
+    runs = [subprocess.Popen([sys.executable, "-c", PROBE], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True) for _ in range(3)]
+    outs = [r.communicate(timeout=300) for r in runs]
+    assert all(r.returncode == 0 for r in runs), [o[1][-1000:] for o in outs]
+    values = {json.loads(o[0].strip().splitlines()[-1])["value"] for o in outs}
+    assert len(values) == 1
+    again, stderr = probe(cache)
+    assert again["hits"] >= 1 and again["value"] in values
+    assert "Error reading persistent compilation cache" not in stderr
+
+
+def test_unusable_folders_warn_and_run_without(tmp_path):
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    assert "cannot create" in _unusable(a_file / "cache")
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    assert "can be written by other users" in _unusable(shared)
+    assert _unusable(tmp_path / "fresh") is None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert hj.enable_compilation_cache(a_file / "cache") is None
+    assert any("will not be cached" in str(w.message) and "HIDDENJAX_CACHE" in str(w.message) for w in caught)
+
+
+def test_cli_runs_with_an_unwritable_cache(tmp_path):
+    """The command warns in one line and still does its work."""
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
+    env.update(JAX_PLATFORMS="cpu", HIDDENJAX_CACHE=str(a_file / "cache"))
+    done = subprocess.run([sys.executable, "-m", "hiddenjax.cli", "board", "-o", str(tmp_path / "board.png")],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "will not be cached" in lines[0], done.stderr
+    assert (tmp_path / "board.png").exists()
