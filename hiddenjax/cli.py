@@ -155,7 +155,7 @@ def solve(args) -> dict:
     prior_name = type(as_prior(prior)).__name__
     env = np.asarray(solution.env)
     seconds = time.perf_counter() - t0
-    kkt = float(np.max(solution.kkt_residual))
+    kkt = float(np.max(np.asarray(solution.kkt_residual)))
     if not np.all(np.isfinite(env)):
         raise ValueError("the solve produced non-finite values; raise --ridge (the problem is singular)")
     io.write_image(out, env)
@@ -231,13 +231,13 @@ def _write_cues(out: Path, T: TransportMatrix, image, ridge) -> tuple[dict, dict
     mask = np.asarray(T.mask)
     linear = _cues.LinearCues.build(T, ridge=ridge)
     maps = {
-        "leverage": (np.where(mask, np.asarray(T.rows_to_image(linear.leverage())), np.nan), 1.0),
+        "leverage": (np.where(mask, T.rows_to_image(np.asarray(linear.leverage())), np.nan), 1.0),
         "uncertainty": (np.asarray(linear.uncertainty()), 1.0),
     }
     if image is not None:
         grey = image.mean(axis=-1) if image.ndim == 3 else image  # Cook's distance of the grey photo
         cook = np.asarray(linear.cooks_distance(grey))
-        maps["cooks_distance"] = (np.where(mask, np.asarray(T.rows_to_image(cook)), np.nan), 0.5)
+        maps["cooks_distance"] = (np.where(mask, T.rows_to_image(cook), np.nan), 0.5)
     summary = {}
     for name, (value, gamma) in maps.items():
         io.write_exr(out / f"{name}.exr", np.nan_to_num(value))
@@ -364,7 +364,7 @@ def demo(args) -> dict:
                     pixel_samples=pixel_samples, photo_samples=photo_samples),
         seconds=dict(transport=round(t_transport, 2), solve=round(t_solve, 2), cues=round(t_cues, 2)),
         env_errors={k: round(v, 4) for k, v in metrics.env_errors(env, truth).items()},
-        kkt_residual=float(np.max(solution.kkt_residual)),
+        kkt_residual=float(np.max(np.asarray(solution.kkt_residual))),
         cues=cue_summary,
     )
     io.write_text(out / "results.json", json.dumps(results, indent=2))

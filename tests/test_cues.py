@@ -80,9 +80,14 @@ def test_a_failed_shifted_cholesky_falls_back_to_qr_with_a_warning(scene_T, monk
     from hiddenjax.cues import _linear
     with jax.enable_x64():
         qr = hj.cues.LinearCues.build(scene_T, method="qr")
-        monkeypatch.setattr(_linear, "_refined_inverse_factor", lambda A, *args: jnp.full((A.shape[1],) * 2, jnp.nan))
-        with pytest.warns(UserWarning, match="the cues use the QR factorization instead"):
-            cues = hj.cues.LinearCues.build(scene_T)
+        try:  # the factorization is one compiled program: trace it again with the failing factor, and after
+            with monkeypatch.context() as patch:
+                patch.setattr(_linear, "_refined_inverse_factor", lambda A, *args: jnp.full((A.shape[1],) * 2, jnp.nan))
+                jax.clear_caches()
+                with pytest.warns(UserWarning, match="the cues use the QR factorization instead"):
+                    cues = hj.cues.LinearCues.build(scene_T)
+        finally:
+            jax.clear_caches()
         np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-12)
 
 

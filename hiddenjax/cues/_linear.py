@@ -73,30 +73,22 @@ class LinearCues(eqx.Module):
             raise ValueError(f"method must be 'qr' or 'cholesky', got {method!r}")
         _check_weights(smooth, ridge)
         with_smooth = not (isinstance(smooth, (int, float)) and smooth == 0)
-        ls, lr = regularization_weights(T, smooth, ridge, absolute)
-        A, grid = T.A, T.grid
-        eye = jnp.eye(grid.size, dtype=A.dtype)
+        passes = _passes(T.A.dtype, ridge, absolute)
+        weights = _as_arrays(ridge, smooth)  # arguments, not constants: one program for every weight
+        traced = isinstance(T.A, jax.core.Tracer)
         if method == "cholesky":
-            inverse = _refined_inverse_factor(A, grid, ls if with_smooth else None, lr, chunk,
-                                              _passes(A.dtype, ridge, absolute))
-            if not isinstance(inverse, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(inverse))):
-                # the shift (from the mean of diag(A^T A)) fell short of the rounding of the formed
-                # A^T A, which scales with its largest eigenvalue: a strongly correlated A
-                method = "fallback"
-        if method in ("qr", "fallback"):
-            R = jnp.sqrt(lr) * eye  # the prior rows' R factor, exact for the ridge alone
-            if with_smooth:
-                D = jax.vmap(grid.difference, out_axes=1)(eye)  # ((2H-1)W, N)
-                R = jnp.linalg.qr(jnp.concatenate([jnp.sqrt(ls) * D, R]), mode="r")
-            R = _chunked_qr(A, R, qr_chunk)
-            inverse = jax.scipy.linalg.solve_triangular(R, eye, lower=False).T  # L^-1 with L = R^T
-        if method == "fallback" and bool(jnp.all(jnp.isfinite(inverse))):
+            cues, finite = _factorize(T, *weights, absolute, with_smooth, "cholesky", chunk, qr_chunk, passes)
+            if traced or bool(finite):
+                return cues
+            # the shift (from the mean of diag(A^T A)) fell short of the rounding of the formed A^T A,
+            # which scales with its largest eigenvalue: a strongly correlated A
+        cues, finite = _factorize(T, *weights, absolute, with_smooth, "qr", chunk, qr_chunk, passes)
+        if method == "cholesky" and bool(finite):
             warnings.warn("the shifted Cholesky factor of the formed A^T A failed in "
-                          f"{jnp.dtype(A.dtype).name}; the cues use the QR factorization instead", stacklevel=2)
-        inverse = eqx.error_if(inverse, ~jnp.all(jnp.isfinite(inverse)),
-                               "A^T A + R is singular (a direction no pixel sees, and zero weights): "
-                               "use ridge > 0")
-        return cls(T, inverse, jnp.asarray(ls), jnp.asarray(lr))
+                          f"{jnp.dtype(T.A.dtype).name}; the cues use the QR factorization instead", stacklevel=2)
+        if not traced and not bool(finite):
+            raise ValueError("A^T A + R is singular (a direction no pixel sees, and zero weights): use ridge > 0")
+        return cues
 
     def _blocks(self, fn, chunk: int):
         """Apply `fn(rows_of_A) -> (c, ...)` to row blocks of `A` and gather `(P, ...)` (see `fold_rows`)."""
@@ -105,11 +97,13 @@ class LinearCues(eqx.Module):
         put = lambda out, start, rows: jax.lax.dynamic_update_slice_in_dim(out, fn(rows), start, axis=0)
         return fold_rows(A, put, jnp.zeros((A.shape[0],) + shape.shape[1:], shape.dtype), chunk)
 
+    @eqx.filter_jit
     def leverage(self, chunk: int = _CHUNK) -> Float[Array, " P"]:
         """`h_ii = a_i (A^T A + R)^-1 a_i^T` (eq. 6.2) for every observed pixel, `(P,)` in `[0, 1]`."""
         Linv = self.inverse_factor
         return self._blocks(lambda a: jnp.sum(jnp.square(a @ Linv.T), axis=1), chunk)
 
+    @eqx.filter_jit
     def effective_dof(self) -> Float[Array, ""]:
         """`trace(H) = sum_i h_ii`, the effective number of parameters: `N` for `R = 0` and full rank.
 
@@ -128,15 +122,11 @@ class LinearCues(eqx.Module):
         (radiance) under Gaussian noise and the Gaussian prior that `R` encodes. Directions that no
         observed pixel sees reach the largest possible value, `1/sqrt(ridge)`.
         """
-        std = jnp.sqrt(jnp.sum(jnp.square(self.inverse_factor), axis=0))
-        if noise is not None:
-            std = std * noise
-        return std.reshape(self.T.grid.shape)
+        return _uncertainty(self, None if noise is None else jnp.asarray(noise))
 
     def estimate(self, image) -> Float[Array, "h w *C"]:
         """The unconstrained (ridge) estimate `x = B^-1 A^T y` of `image (H, W[, C])`."""
-        x = self._estimate_rows(_check_image(self.T, image).astype(self.T.A.dtype))
-        return x.reshape(self.T.grid.shape + x.shape[1:])
+        return _estimate(self, _check_image(self.T, image).astype(self.T.A.dtype))
 
     def _estimate_rows(self, y):
         """`B^-1 A^T y` as `(N[, C])` from the observed pixels `y (P[, C])`."""
@@ -159,6 +149,9 @@ class LinearCues(eqx.Module):
         if y.ndim != 1:
             raise ValueError(f"cooks_distance takes one channel, got an image with {y.shape[1]}; "
                              "pass image[..., c] or image.mean(-1)")
+        return _cooks_distance(self, y, chunk)
+
+    def _cooks_distance(self, y, chunk):
         A, Linv, grid = self.T.A, self.inverse_factor, self.T.grid
         e = y - A @ self._estimate_rows(y)
 
@@ -184,6 +177,51 @@ class LinearCues(eqx.Module):
         Linv = self.inverse_factor
         columns = Linv.T @ Linv[:, idx]  # B^-1 e_k, (N, K)
         return jax.vmap(self.T.rows_to_image, in_axes=1)(self.T.A @ columns)
+
+
+def _as_arrays(*weights):
+    """Python numbers as JAX scalars (jit arguments rather than constants); traced values as they are."""
+    return tuple(jnp.asarray(w) if isinstance(w, (int, float)) else w for w in weights)
+
+
+@eqx.filter_jit
+def _factorize(T, ridge, smooth, absolute, with_smooth, method, chunk, qr_chunk, passes):
+    """`(LinearCues, whether L^-1 is finite)`: the factorization of `LinearCues.build`, one program per method."""
+    ls, lr = regularization_weights(T, smooth, ridge, absolute)
+    A, grid = T.A, T.grid
+    eye = jnp.eye(grid.size, dtype=A.dtype)
+    if method == "cholesky":
+        inverse = _refined_inverse_factor(A, grid, ls if with_smooth else None, lr, chunk, passes)
+    else:
+        R = jnp.sqrt(lr) * eye  # the prior rows' R factor, exact for the ridge alone
+        if with_smooth:
+            D = jax.vmap(grid.difference, out_axes=1)(eye)  # ((2H-1)W, N)
+            R = jnp.linalg.qr(jnp.concatenate([jnp.sqrt(ls) * D, R]), mode="r")
+        R = _chunked_qr(A, R, qr_chunk)
+        inverse = jax.scipy.linalg.solve_triangular(R, eye, lower=False).T  # L^-1 with L = R^T
+    finite = jnp.all(jnp.isfinite(inverse))
+    inverse = eqx.error_if(inverse, ~finite & (method == "qr"),
+                           "A^T A + R is singular (a direction no pixel sees, and zero weights): use ridge > 0")
+    return LinearCues(T, inverse, jnp.asarray(ls), jnp.asarray(lr)), finite
+
+
+@eqx.filter_jit
+def _uncertainty(cues, noise):
+    std = jnp.sqrt(jnp.sum(jnp.square(cues.inverse_factor), axis=0))
+    if noise is not None:
+        std = std * noise
+    return std.reshape(cues.T.grid.shape)
+
+
+@eqx.filter_jit
+def _estimate(cues, y):
+    x = cues._estimate_rows(y)
+    return x.reshape(cues.T.grid.shape + x.shape[1:])
+
+
+@eqx.filter_jit
+def _cooks_distance(cues, y, chunk):
+    return cues._cooks_distance(y, chunk)
 
 
 def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int):

@@ -80,9 +80,9 @@ class Camera(eqx.Module):
     def _from_matrices(cls, K, R, t, width, height) -> "Camera":
         intr = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
         return cls(
-            intrinsics=jnp.asarray(intr, dtype=jnp.float32),
-            rotation=jnp.asarray(R, dtype=jnp.float32),
-            translation=jnp.asarray(t, dtype=jnp.float32),
+            intrinsics=jnp.asarray(np.asarray(intr, np.float32)),  # cast on the host: no JAX program
+            rotation=jnp.asarray(np.asarray(R, np.float32)),
+            translation=jnp.asarray(np.asarray(t, np.float32)),
             width=int(width),
             height=int(height),
         )
@@ -126,8 +126,13 @@ class Camera(eqx.Module):
     def primary_rays(self, pixel_samples: int, seed: int = 0):
         """`(origin (3,), directions (H, W, S, 3))` float64 through stratified footprint samples."""
         pixels = self.footprint_samples(pixel_samples, seed)
-        directions = np.asarray(self.ray_directions(pixels.reshape(-1, 2)), dtype=np.float64)
-        return np.asarray(self.origin, dtype=np.float64), directions.reshape(pixels.shape[:3] + (3,))
+        origin, directions = _rays(self, pixels.reshape(-1, 2))  # one program (eager, it was twenty)
+        return np.asarray(origin, np.float64), np.asarray(directions, np.float64).reshape(pixels.shape[:3] + (3,))
+
+
+@eqx.filter_jit
+def _rays(camera, pixels):
+    return camera.origin, camera.ray_directions(pixels)
 
 
 def _check_size(width, height):

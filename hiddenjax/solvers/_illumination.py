@@ -149,34 +149,56 @@ class L2Prior(Prior):
         spread = jnp.exp(entropy) / jnp.sum(observed)
         return jnp.clip(self.adapt / spread, *self.adapt_range)
 
-    def reweighted(self, op, c, nonneg, solver):
-        """`(B_w, factor of B_w, R_w, c_t, smooth)` after `reweight` iterations (`op.B`, its factor and `R`
-        when 0), `c_t` the columns with the threshold's term, `smooth` the absolute smoothness of `R_w`."""
-        grid = op.views[0].grid
-        R = prior_matrix(grid, op.smooth, op.ridge, op.B.dtype)
-        B, factor, smooth = op.B, op.factor, op.smooth
-        gram = op.B - R
-        if self.reweight == 0 and self.thresholds():
-            c = self.thresholded(op.B, c, _solve(B, factor, c, solver, nonneg)[0])
-        for k in range(self.reweight):
-            x, _, _, _ = _solve(B, factor, c, solver, nonneg)
-            if k == 0:
-                c = self.thresholded(op.B, c, x)
-            if self.adapt and k == min(1, self.reweight - 1):
-                smooth = op.smooth * self.spread_factor(x, jnp.diagonal(gram))
+    def passes(self) -> int:
+        """Solves before the last one: `reweight`, or one for the threshold's map `x_0` alone."""
+        return self.reweight if self.reweight else int(self.thresholds())
+
+    def reweighted(self, op, c, nonneg, solver, last: bool = False):
+        """`(B_w, factor of B_w, R_w, c_t, smooth, out)` after the `passes()` solves that choose the weights.
+
+        `B_w`, its factor and `R_w` are `op.B`, `op.factor` and `R` when `reweight = 0`; `c_t` the
+        columns with the threshold's term; `smooth` the absolute smoothness of `R_w`; `out` the
+        `_solve` output `(x, B x - c, steps, result)` of the last solve: with `last`, one more solve
+        on `B_w` (the solution), else the last weight-choosing one (None when there is none).
+        """
+        grid, n = op.views[0].grid, self.passes()
+        R0 = prior_matrix(grid, op.smooth, op.ridge, op.B.dtype)
+        gram = op.B - R0
+        start = (op.B, op.factor, R0, c, op.smooth)
+        if n == 0:
+            return start + ((_solve(op.B, op.factor, c, solver, nonneg) if last else None),)
+
+        def reweight(k, x, smooth):
+            """`(B_w, its factor, R_w, smooth)` from the map `x` of solve `k` (class doc)."""
+            if self.adapt:
+                smooth = jnp.where(k == min(1, self.reweight - 1), op.smooth * self.spread_factor(x, jnp.diagonal(gram)),
+                                   smooth)
             R = smooth * weighted_laplacian(grid, log_domain_weights(grid, x, self.floor)) + op.ridge * jnp.eye(
-                grid.size, dtype=B.dtype)
-            B = gram + R
-            factor = _cholesky(B)
-        return B, factor, R, c, smooth
+                grid.size, dtype=gram.dtype)
+            return gram + R, _cholesky(gram + R), R, smooth
+
+        def step(k, state):
+            # Every solve is this one call, so a program holds one copy of the solver (a Python loop
+            # inlined n + 1 copies into a caller's jit, and each was compiled)
+            B, factor, R, c_t, smooth, _ = state
+            out = _solve(B, factor, c_t, solver, nonneg)
+            c_t = jnp.where(k == 0, self.thresholded(op.B, c, out[0]), c_t)  # x_0 is the thesis' map
+            if self.reweight:
+                B, factor, R, smooth = jax.lax.cond(k < n, reweight, lambda k, x, smooth: (B, factor, R, smooth),
+                                                    k, out[0], smooth)
+            return B, factor, R, c_t, smooth, out
+
+        first = jax.eval_shape(lambda: _solve(op.B, op.factor, c, solver, nonneg))
+        zeros = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), first)
+        return jax.lax.fori_loop(0, n + 1 if last else n, step, start + (zeros,))
 
     def solve(self, op, c, ys, nonneg, solver):
         if (self.reweight or self.thresholds()) and not nonneg:
             raise ValueError("the HDR-aware prior (reweight > 0 or threshold > 0, the 'hdr' default) weights the "
                              "smoothness by log x and sets dim cells to zero, which needs x >= 0; solve a signed map "
                              "with prior='l2' (the default when nonneg=False)")
-        B, factor, R, c_t, smooth = self.reweighted(op, c, nonneg, solver)
-        x, grad, steps, result = _solve(B, factor, c_t, solver, nonneg)
+        B, factor, R, c_t, smooth, out = self.reweighted(op, c, nonneg, solver, last=True)
+        x, grad, steps, result = out
         # |A x - y|^2 + x^T R x from the residual itself: x^T B x - 2 c^T x + |y|^2 would lose the
         # digits that tell two scenes' energies apart to cancellation (posterior weights use them)
         residual = sum(jnp.sum((matvec(t, x) - y) ** 2, 0) for t, y in zip(op.views, ys))
@@ -373,7 +395,11 @@ class IlluminationOperator(eqx.Module):
         mean the L2 prior with those weights; neither gives `DEFAULT_PRIOR`.
         """
         Ts = views(T)
-        return cls.from_gram(Ts, sum(gram(t) for t in Ts), smooth, ridge, absolute, prior=prior)
+        prior = as_prior(prior, smooth, ridge, absolute)
+        _check_determined(Ts, prior)
+        if compiles_whole(Ts):  # one program: A^T A, the prior's normal matrix and its factor
+            return _with_prior(_build(Ts, _traced_weights(prior)), prior)
+        return cls.from_gram(Ts, sum(gram(t) for t in Ts), prior=prior)
 
     @classmethod
     def from_gram(cls, T, gram, smooth=None, ridge=None, absolute: bool = False, *, prior=None):
@@ -387,6 +413,12 @@ class IlluminationOperator(eqx.Module):
         Ts = views(T)
         prior = as_prior(prior, smooth, ridge, absolute)
         _check_determined(Ts, prior)
+        if compiles_whole(Ts):
+            return _with_prior(_from_gram(Ts, gram, _traced_weights(prior)), prior)
+        return cls._factorize(Ts, gram, prior)
+
+    @classmethod
+    def _factorize(cls, Ts, gram, prior):
         B, ls, lr = prior.normal_matrix(Ts, gram)
         return cls(Ts, B, _cholesky(B), jnp.asarray(ls), jnp.asarray(lr), prior)
 
@@ -412,6 +444,12 @@ class IlluminationOperator(eqx.Module):
         _check_signs(ys, nonneg)
         if len({y.shape[1:] for y in ys}) != 1:
             raise ValueError("all views' images must have the same number of channels")
+        if compiles_whole(self.views):  # one program per shape, whatever the weights (passed as arrays)
+            return _solve_rows(_traced_weights(self), ys, nonneg, _traced_weights(solver), throw)
+        return self._solve_rows([jnp.asarray(y) for y in ys], nonneg, solver, throw)
+
+    def _solve_rows(self, ys, nonneg, solver, throw) -> IlluminationSolution:
+        """`solve` of the observed pixels `ys` (one `(P_v[, C])` per view), checked."""
         c = sum(rmatvec(t, y) for t, y in zip(self.views, ys))
         x, objective, kkt, steps, result, sources, smooth = self.prior.solve(self, c, ys, nonneg, solver)
         if throw:
@@ -453,6 +491,42 @@ def _as_columns(stack):
     M, channels = stack.shape[0], stack.shape[3:]
     columns = jnp.moveaxis(stack, 0, -1).reshape(stack.shape[1:3] + (-1,))
     return columns, lambda a, lead: jnp.moveaxis(a.reshape(a.shape[:lead] + channels + (M,)), -1, 0)
+
+
+def compiles_whole(Ts) -> bool:
+    """Whether a build or solve on these views runs as one compiled program: dense matrices on one
+    device (a matrix-free operator forms `A^T A` by host-driven blocks, a row-sharded matrix reduces
+    over its mesh) and not already under a trace (then the caller's program holds it)."""
+    return all(isinstance(t, TransportMatrix) and not isinstance(t.A, jax.core.Tracer) and not _sharded(t) for t in Ts)
+
+
+def _traced_weights(tree):
+    """`tree` with its Python float leaves (a prior's weights, a solver's `rtol`) as JAX scalars.
+
+    `eqx.filter_jit` keys its cache on non-array leaves: as floats, every new weight would compile
+    the solver again; as (weakly typed) arrays they are arguments of one program.
+    """
+    return jax.tree_util.tree_map(lambda v: jnp.asarray(v) if type(v) is float else v, tree)
+
+
+def _with_prior(op, prior):
+    """The operator with the caller's own prior Module (its weights as given, not as traced arrays)."""
+    return eqx.tree_at(lambda o: o.prior, op, prior)
+
+
+@eqx.filter_jit
+def _build(Ts, prior):
+    return IlluminationOperator._factorize(Ts, sum(gram(t) for t in Ts), prior)
+
+
+@eqx.filter_jit
+def _from_gram(Ts, gram, prior):
+    return IlluminationOperator._factorize(Ts, gram, prior)
+
+
+@eqx.filter_jit
+def _solve_rows(op, ys, nonneg, solver, throw):
+    return op._solve_rows(ys, nonneg, solver, throw)
 
 
 def as_prior(prior=None, smooth=None, ridge=None, absolute: bool = False) -> Prior:
@@ -535,15 +609,18 @@ def _check_weights(smooth, ridge):
 
 
 def _check_image(T: TransportMatrix, image):
-    image = jnp.asarray(image)
+    """The observed pixels of `image`, checked (finite, not all zero) on the host unless traced."""
+    if isinstance(image, jax.core.Tracer):
+        if image.ndim not in (2, 3):
+            raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
+        return T.image_to_rows(image)
+    image = np.asarray(image)
     if image.ndim not in (2, 3):
         raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
     y = T.image_to_rows(image)
-    if isinstance(y, jax.core.Tracer):
-        return y
-    if not bool(jnp.all(jnp.isfinite(y))):
+    if not np.all(np.isfinite(y)):
         raise ValueError("image has non-finite values (NaN or inf) inside the transport matrix's mask")
-    if not bool(jnp.any(y != 0)):
+    if not np.any(y != 0):
         raise ValueError("image is zero at every observed pixel: there is no light to solve for; check the "
                          "exposure, the file, and that the photo matches the transport matrix's camera and mask")
     return y
@@ -560,8 +637,8 @@ def _check_signs(ys, nonneg: bool):
     """
     if not nonneg or any(isinstance(y, jax.core.Tracer) for y in ys):
         return
-    negative = sum(float(jnp.sum(jnp.maximum(-y, 0))) for y in ys)
-    total = sum(float(jnp.sum(jnp.abs(y))) for y in ys)
+    negative = sum(float(np.sum(np.maximum(-np.asarray(y), 0))) for y in ys)
+    total = sum(float(np.sum(np.abs(np.asarray(y)))) for y in ys)
     if negative > NEGATIVE_MASS * total:
         warnings.warn(f"the photo has negative radiance ({100 * negative / total:.0f}% of its absolute value) but is "
                       "solved with x >= 0: for a difference of frames solve the signed map (nonneg=False, or "

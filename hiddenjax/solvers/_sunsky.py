@@ -90,7 +90,7 @@ class SunSkyPrior(Prior):
         solver = ProjectedNewton() if solver is None else solver
         columns = c if c.ndim == 2 else c[:, None]
         grid = op.views[0].grid
-        B, factor, R, _, smooth = self.sky.reweighted(op, columns, True, solver)  # the sky's prior, HDR-aware if asked
+        B, factor, R, _, smooth, _ = self.sky.reweighted(op, columns, True, solver)  # the sky's prior, HDR-aware if asked
         yy = sum(jnp.sum(y * y, 0) for y in ys).reshape(-1)
         xs, ss, angles_k, active_k, rss_k, steps, result_k = _sunsky(B, factor, R, op.ridge, grid, columns, yy, self, solver)
         # BIC over the effective number of independent residuals, from the sky-only fit's residual image

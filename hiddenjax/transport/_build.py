@@ -96,8 +96,8 @@ def transport_matrix(
         rays += n_rays
     return TransportMatrix(
         A=jax.device_put(A),  # aliases the aligned buffer on CPU: no second copy of A
-        albedo=jnp.asarray(plan.albedo(), dtype=jnp.float32),
-        pixels=jnp.asarray(plan.pixels, dtype=jnp.int32),
+        albedo=jnp.asarray(np.asarray(plan.albedo(), np.float32)),  # cast on the host: no JAX program
+        pixels=jnp.asarray(np.asarray(plan.pixels, np.int32)),
         grid=grid,
         image_shape=(plan.H, plan.W),
         samples=int(samples),

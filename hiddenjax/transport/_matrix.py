@@ -25,19 +25,39 @@ class PixelRows:
         return m.reshape(self.image_shape)
 
     def image_to_rows(self, image):
-        """Observed pixels `(P,)` or `(P, C)` of an image `(H, W)` or `(H, W, C)`."""
-        image = jnp.asarray(image)
+        """Observed pixels `(P,)` or `(P, C)` of an image `(H, W)` or `(H, W, C)`.
+
+        A numpy image gives numpy rows, computed on the host (no JAX program); a JAX array or a
+        tracer gives JAX rows.
+        """
+        host = isinstance(image, np.ndarray)
+        image = image if host else jnp.asarray(image)
         if image.shape[:2] != self.image_shape:
             raise ValueError(
                 f"image shape {image.shape} does not match the transport matrix's image {self.image_shape}"
             )
+        flat = image.reshape((-1,) + image.shape[2:])
+        if host:
+            pixels = np.asarray(self.pixels)
+            inside = pixels < flat.shape[0]
+            rows = flat[np.where(inside, pixels, 0)]
+            return np.where(inside.reshape((-1,) + (1,) * (rows.ndim - 1)), rows, 0).astype(flat.dtype)
         # the empty rows of a row-sharded matrix (pixel H * W, past the image) read 0
-        return jnp.take(image.reshape((-1,) + image.shape[2:]), self.pixels, axis=0, mode="fill", fill_value=0)
+        return jnp.take(flat, self.pixels, axis=0, mode="fill", fill_value=0)
 
     def rows_to_image(self, rows):
-        """Scatter `(P,)` or `(P, C)` values into an `(H, W[, C])` image, zero outside the mask."""
-        rows = jnp.asarray(rows)
+        """Scatter `(P,)` or `(P, C)` values into an `(H, W[, C])` image, zero outside the mask.
+
+        numpy rows give a numpy image (on the host), JAX rows a JAX image.
+        """
         H, W = self.image_shape
+        if isinstance(rows, np.ndarray):
+            pixels = np.asarray(self.pixels)
+            inside = pixels < H * W
+            out = np.zeros((H * W,) + rows.shape[1:], dtype=rows.dtype)
+            out[pixels[inside]] = rows[inside]
+            return out.reshape((H, W) + rows.shape[1:])
+        rows = jnp.asarray(rows)
         out = jnp.zeros((H * W,) + rows.shape[1:], dtype=rows.dtype).at[self.pixels].set(rows, mode="drop")
         return out.reshape((H, W) + rows.shape[1:])
 
