@@ -102,3 +102,44 @@ def test_cli_runs_with_an_unwritable_cache(tmp_path):
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "will not be cached" in lines[0], done.stderr
     assert (tmp_path / "board.png").exists()
+
+
+# Programs traced and lowered in this process (counted whether or not the disk cache then answers).
+_lowered = []
+jax_monitoring_registered = False
+
+
+def lowered_programs(fn):
+    """How many JAX programs `fn()` traces and lowers."""
+    global jax_monitoring_registered
+    from jax import monitoring
+    if not jax_monitoring_registered:
+        monitoring.register_event_duration_secs_listener(
+            lambda name, secs, **_: _lowered.append(name) if name == "/jax/core/compile/jaxpr_to_mlir_module_duration"
+            else None)
+        jax_monitoring_registered = True
+    before = len(_lowered)
+    fn()
+    return len(_lowered) - before
+
+
+def test_a_solve_and_the_cues_are_a_few_programs_compiled_once_for_every_weight(small_setup):
+    """Compile once: the build and the solve are one program each, new weights reuse them, and the
+    cue maps share one factorization program (eager array glue once made a first solve ~80 programs)."""
+    import numpy as np
+    grid = hj.EnvGrid(4, 8)
+    T = hj.transport_matrix(small_setup.scene, small_setup.camera, grid, samples=4, pixel_samples=1)
+    sky = hj.scenes.procedural_sky(32, 64)
+    photo = np.asarray(hj.render(T, grid.downsample(sky)))
+    first = lowered_programs(lambda: np.asarray(hj.solve_illumination(T, photo).env))
+    assert first <= 3, first
+    hj.solve_illumination(T, photo, prior=hj.solvers.L2Prior(smooth=0.2))  # L2 without reweighting: its own pair
+    # other photos, and other weights (the smoothness, ridge and floor are arguments; `adapt`, `reweight`
+    # and `threshold` choose the program's form and are static)
+    hdr = lambda floor: hj.solvers.L2Prior(smooth=0.5, ridge=1e-3, floor=floor, reweight=3, threshold=0.02, adapt=0.4)
+    again = lowered_programs(lambda: [np.asarray(hj.solve_illumination(T, photo * s, prior=p).env)
+                                      for s in (0.5, 2.0) for p in (hdr(0.1), hdr(0.5),
+                                                                    hj.solvers.L2Prior(smooth=0.01, ridge=1e-3))])
+    assert again == 0, again
+    cues = lowered_programs(lambda: [np.asarray(hj.cues.leverage(T, ridge=r)) for r in (1e-4, 1e-3)])
+    assert cues <= 2, cues
