@@ -24,6 +24,8 @@ it; no output file is left behind), 2 for a malformed command line.
 
 import argparse
 import json
+import os
+import re
 import sys
 import time
 import warnings
@@ -849,6 +851,15 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _runtime_message(e: BaseException) -> str:
+    """One line from an error raised inside a compiled program: the check's own message, without JAX's and
+    equinox's stack and advice."""
+    text = str(e)
+    found = re.search(r"EquinoxRuntimeError: (.+)", text)
+    line = found.group(1) if found else next((l for l in text.splitlines() if l.strip()), type(e).__name__)
+    return " ".join(line.split())
+
+
 def main(argv=None) -> int:
     """Entry point of the `hiddenjax` console script; returns the exit status."""
     parser = _parser()
@@ -866,6 +877,12 @@ def main(argv=None) -> int:
     except (ValueError, OSError) as e:
         message = " ".join(str(e).split())  # one line
         print(f"hiddenjax {args.command}: error: {message}", file=sys.stderr)
+        return 1
+    except (RuntimeError, MemoryError) as e:  # raised inside compiled code (EquinoxRuntimeError, XLA's errors)
+        if os.environ.get("HIDDENJAX_DEBUG"):
+            raise
+        print(f"hiddenjax {args.command}: error: {_runtime_message(e)} (HIDDENJAX_DEBUG=1 shows the traceback)",
+              file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"hiddenjax {args.command}: interrupted", file=sys.stderr)

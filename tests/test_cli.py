@@ -187,6 +187,24 @@ def test_photos_that_make_no_physical_sense(built, capsys):
     assert "warning" not in capsys.readouterr().err
 
 
+def test_an_error_inside_a_compiled_solve_is_one_line(built):
+    """An all-negative photo solved with x >= 0 and the L2 prior at zero weights: the normal matrix
+    is singular and the check inside the compiled factorization fails. The command prints the
+    warning and one line (no traceback), writes nothing, and shows the traceback on request."""
+    T = hj.TransportMatrix.load(built / "A.npz")
+    hj.io.write_exr(built / "negative.exr", -np.asarray(hj.render(T, np.ones((4, 8), np.float32))) - 1e-3)
+    args = ("solve", "A.npz", "negative.exr", "-o", "neg.exr", "--prior", "l2", "--smooth", "0", "--ridge", "0")
+    proc = run(*args, cwd=built)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(lines) <= 2 and lines[-1].startswith("hiddenjax solve: error: ") and "HIDDENJAX_DEBUG" in lines[-1]
+    assert not (built / "neg.exr").exists()
+    env = dict(os.environ, JAX_PLATFORMS="cpu", HIDDENJAX_DEBUG="1")
+    debug = subprocess.run([sys.executable, "-m", "hiddenjax", *args], cwd=built, env=env, capture_output=True,
+                           text=True, timeout=300)
+    assert debug.returncode == 1 and "Traceback" in debug.stderr
+
+
 @pytest.mark.parametrize("prior", ["hdr", "l2", "tv", "sunsky"])
 def test_solve_with_each_prior(built, capsys, prior):
     hj.io.write_exr(built / "sky.exr", np.full((16, 32, 3), 2.0, np.float32))
