@@ -5,6 +5,8 @@ The core of every exact solve in hiddenjax (eq. 5.3-5.7): the illumination solve
 once `B` and `c` are formed. Optimality is the KKT condition `min(x, B x - c) = 0` (elementwise).
 """
 
+import contextlib
+import contextvars
 from functools import partial
 
 import equinox as eqx
@@ -19,6 +21,29 @@ NOT_POSITIVE_DEFINITE = (
 
 
 SUCCESS, MAX_STEPS = 0, 1
+
+_HOST_CHECKS = contextvars.ContextVar("hiddenjax_host_checks", default=False)
+
+
+@contextlib.contextmanager
+def checks_on_host():
+    """Trace a program whose caller checks its results on the host: `check` adds no runtime error.
+
+    `eqx.error_if` raises from inside a compiled program through a host callback, and JAX never
+    writes a program with a host callback to its persistent compilation cache: the solvers' own
+    top-level programs are traced under this context and raise from their returned values instead
+    (the same messages), so a later process loads them rather than compiling them again.
+    """
+    token = _HOST_CHECKS.set(True)
+    try:
+        yield
+    finally:
+        _HOST_CHECKS.reset(token)
+
+
+def check(x, pred, message: str):
+    """`eqx.error_if(x, pred, message)`, or `x` itself while tracing under `checks_on_host`."""
+    return x if _HOST_CHECKS.get() else eqx.error_if(x, pred, message)
 
 
 class ProjectedNewton(eqx.Module):
@@ -113,7 +138,7 @@ def solve_from(B, c, unconstrained, solver, nonneg):
 def _cholesky(B):
     """The lower Cholesky factor of `B`, or the clear not-positive-definite error (never NaN maps)."""
     factor = equilibrated_cholesky(B)
-    return eqx.error_if(factor, ~jnp.all(jnp.isfinite(factor)), NOT_POSITIVE_DEFINITE)
+    return check(factor, ~jnp.all(jnp.isfinite(factor)), NOT_POSITIVE_DEFINITE)
 
 
 def equilibrated_cholesky(B):

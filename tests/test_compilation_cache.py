@@ -143,3 +143,39 @@ def test_a_solve_and_the_cues_are_a_few_programs_compiled_once_for_every_weight(
     assert again == 0, again
     cues = lowered_programs(lambda: [np.asarray(hj.cues.leverage(T, ridge=r)) for r in (1e-4, 1e-3)])
     assert cues <= 2, cues
+
+
+SOLVE_PROBE = """
+import json
+import numpy as np
+from jax import monitoring
+events = []
+monitoring.register_event_listener(lambda name, **kw: events.append(name))
+import hiddenjax as hj
+hj.enable_compilation_cache()
+setup = hj.scenes.object_on_plane("sphere", width=16, height=16)
+grid = hj.EnvGrid(4, 8)
+T = hj.transport_matrix(setup.scene, setup.camera, grid, samples=2, pixel_samples=1, progress=False)
+photo = np.asarray(hj.render(T, grid.downsample(hj.scenes.procedural_sky(32, 64))))
+start = len(events)
+env = np.asarray(hj.solve_illumination(T, photo).env)
+cues = np.asarray(hj.cues.leverage(T))
+later = events[start:]
+print(json.dumps(dict(misses=later.count("/jax/compilation_cache/cache_misses"),
+                      hits=later.count("/jax/compilation_cache/cache_hits"), env=float(env.sum()))))
+"""
+
+
+def test_the_solve_and_the_cues_are_loaded_from_the_cache_in_a_second_process(tmp_path):
+    """Their programs carry no host callback (JAX never caches those): the checks run on the host."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
+    env.update(JAX_PLATFORMS="cpu", HIDDENJAX_CACHE=str(tmp_path / "cache"))
+    runs = []
+    for _ in range(2):
+        done = subprocess.run([sys.executable, "-c", SOLVE_PROBE], env=env, capture_output=True, text=True,
+                              timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    assert runs[0]["misses"] >= 3  # the build, the solve, the cue factorization and map: compiled
+    assert runs[1]["misses"] == 0 and runs[1]["hits"] >= runs[0]["misses"], runs
+    assert runs[1]["env"] == runs[0]["env"]

@@ -27,6 +27,7 @@ from ..solvers._illumination import _check_image, _check_weights, fold_rows, tra
 from ..transport import TransportMatrix, TransportOperator
 
 _CHUNK = 2048  # pixels per block of `A L^-T`: 2048 x N floats (16 MiB at N = 2048)
+SINGULAR = "A^T A + R is singular (a direction no pixel sees, and zero weights): use ridge > 0"
 _QR_CHUNK = 8192  # rows per QR update; smaller saves memory, costs time (the stacked R is refactored)
 
 
@@ -75,19 +76,31 @@ class LinearCues(eqx.Module):
         with_smooth = not (isinstance(smooth, (int, float)) and smooth == 0)
         passes = _passes(T.A.dtype, ridge, absolute)
         weights = _as_arrays(ridge, smooth)  # arguments, not constants: one program for every weight
-        traced = isinstance(T.A, jax.core.Tracer)
         if method == "cholesky":
             cues, finite = _factorize(T, *weights, absolute, with_smooth, "cholesky", chunk, qr_chunk, passes)
-            if traced or bool(finite):
+            if isinstance(finite, jax.core.Tracer):  # under a caller's trace: the check is an error of its program
+                return _checked(cues, finite)
+            if bool(finite):
                 return cues
             # the shift (from the mean of diag(A^T A)) fell short of the rounding of the formed A^T A,
             # which scales with its largest eigenvalue: a strongly correlated A
         cues, finite = _factorize(T, *weights, absolute, with_smooth, "qr", chunk, qr_chunk, passes)
+        if isinstance(finite, jax.core.Tracer):
+            return _checked(cues, finite)
+        if not bool(finite):
+            raise ValueError(SINGULAR)
+        if method == "cholesky":
+            warnings.warn("the shifted Cholesky factor of the formed A^T A failed in "
+                          f"{jnp.dtype(T.A.dtype).name}; the cues use the QR factorization instead", stacklevel=2)
+        return cues
+            # the shift (from the mean of diag(A^T A)) fell short of the rounding of the formed A^T A,
+            # which scales with its largest eigenvalue: a strongly correlated A
+        cues, finite = _factorize(T, *weights, absolute, with_smooth, "qr", chunk, qr_chunk, passes, traced)
         if method == "cholesky" and bool(finite):
             warnings.warn("the shifted Cholesky factor of the formed A^T A failed in "
                           f"{jnp.dtype(T.A.dtype).name}; the cues use the QR factorization instead", stacklevel=2)
         if not traced and not bool(finite):
-            raise ValueError("A^T A + R is singular (a direction no pixel sees, and zero weights): use ridge > 0")
+            raise ValueError(SINGULAR)
         return cues
 
     def _blocks(self, fn, chunk: int):
@@ -199,10 +212,13 @@ def _factorize(T, ridge, smooth, absolute, with_smooth, method, chunk, qr_chunk,
             R = jnp.linalg.qr(jnp.concatenate([jnp.sqrt(ls) * D, R]), mode="r")
         R = _chunked_qr(A, R, qr_chunk)
         inverse = jax.scipy.linalg.solve_triangular(R, eye, lower=False).T  # L^-1 with L = R^T
-    finite = jnp.all(jnp.isfinite(inverse))
-    inverse = eqx.error_if(inverse, ~finite & (method == "qr"),
-                           "A^T A + R is singular (a direction no pixel sees, and zero weights): use ridge > 0")
-    return LinearCues(T, inverse, jnp.asarray(ls), jnp.asarray(lr)), finite
+    # no runtime error inside: `build` raises from `finite` (a program with a host callback is never
+    # written to the persistent compilation cache), or, under a caller's trace, `_checked` there
+    return LinearCues(T, inverse, jnp.asarray(ls), jnp.asarray(lr)), jnp.all(jnp.isfinite(inverse))
+
+
+def _checked(cues, finite):
+    return eqx.tree_at(lambda c: c.inverse_factor, cues, eqx.error_if(cues.inverse_factor, ~finite, SINGULAR))
 
 
 @eqx.filter_jit

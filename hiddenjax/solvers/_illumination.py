@@ -15,7 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._qp import SUCCESS, DampedNewton, ProjectedNewton, _cho_solve, _cholesky, _kkt_residual, _solve
+from .._qp import (NOT_POSITIVE_DEFINITE, SUCCESS, DampedNewton, ProjectedNewton, _cho_solve, _cholesky,
+                   _kkt_residual, _solve, check, checks_on_host)
 from ..transport import TransportMatrix, TransportOperator
 from ._sharded import row_mesh_of, sharded_column_energy, sharded_gram, sharded_matvec, sharded_rmatvec
 
@@ -26,6 +27,8 @@ DEFAULT_SMOOTH = 0.03
 DEFAULT_RIDGE = 1e-4
 REFERENCE_CELLS = 2048  # the 32x64 grid the relative weights were tuned on (regularization_weights)
 DEFAULT_PRIOR = "hdr"  # the prior of solve_illumination(T, image) without weights (measured on real HDRIs)
+MAX_STEPS_MESSAGE = ("solve_illumination: the solver ran out of max_steps before the KKT residual met rtol; raise "
+                     "max_steps, or pass throw=False")
 
 
 class Prior(eqx.Module):
@@ -398,7 +401,7 @@ class IlluminationOperator(eqx.Module):
         prior = as_prior(prior, smooth, ridge, absolute)
         _check_determined(Ts, prior)
         if compiles_whole(Ts):  # one program: A^T A, the prior's normal matrix and its factor
-            return _with_prior(_build(Ts, _traced_weights(prior)), prior)
+            return _checked_operator(_build(Ts, _traced_weights(prior)), prior)
         return cls.from_gram(Ts, sum(gram(t) for t in Ts), prior=prior)
 
     @classmethod
@@ -414,7 +417,7 @@ class IlluminationOperator(eqx.Module):
         prior = as_prior(prior, smooth, ridge, absolute)
         _check_determined(Ts, prior)
         if compiles_whole(Ts):
-            return _with_prior(_from_gram(Ts, gram, _traced_weights(prior)), prior)
+            return _checked_operator(_from_gram(Ts, gram, _traced_weights(prior)), prior)
         return cls._factorize(Ts, gram, prior)
 
     @classmethod
@@ -445,7 +448,17 @@ class IlluminationOperator(eqx.Module):
         if len({y.shape[1:] for y in ys}) != 1:
             raise ValueError("all views' images must have the same number of channels")
         if compiles_whole(self.views):  # one program per shape, whatever the weights (passed as arrays)
-            return _solve_rows(_traced_weights(self), ys, nonneg, _traced_weights(solver), throw)
+            solution, finite = _solve_rows(_traced_weights(self), ys, nonneg, _traced_weights(solver))
+            if isinstance(finite, jax.core.Tracer):  # under a caller's trace: the checks are errors of its program
+                env = eqx.error_if(solution.env, ~finite, NOT_POSITIVE_DEFINITE)
+                if throw:
+                    env = eqx.error_if(env, jnp.any(solution.result != SUCCESS), MAX_STEPS_MESSAGE)
+                return eqx.tree_at(lambda s: s.env, solution, env)
+            if not bool(finite):  # a reweighted normal matrix without a factor in this precision
+                raise eqx.EquinoxRuntimeError(NOT_POSITIVE_DEFINITE)
+            if throw and np.any(np.asarray(solution.result) != SUCCESS):
+                raise eqx.EquinoxRuntimeError(MAX_STEPS_MESSAGE)
+            return solution
         return self._solve_rows([jnp.asarray(y) for y in ys], nonneg, solver, throw)
 
     def _solve_rows(self, ys, nonneg, solver, throw) -> IlluminationSolution:
@@ -453,8 +466,7 @@ class IlluminationOperator(eqx.Module):
         c = sum(rmatvec(t, y) for t, y in zip(self.views, ys))
         x, objective, kkt, steps, result, sources, smooth = self.prior.solve(self, c, ys, nonneg, solver)
         if throw:
-            x = eqx.error_if(x, jnp.any(result != SUCCESS), "solve_illumination: the solver ran out of max_steps "
-                             "before the KKT residual met rtol; raise max_steps, or pass throw=False")
+            x = check(x, jnp.any(result != SUCCESS), MAX_STEPS_MESSAGE)
         env = x.reshape(self.views[0].grid.shape + x.shape[1:])
         return IlluminationSolution(env, objective, kkt, steps, result, smooth, self.ridge, sources)
 
@@ -509,24 +521,38 @@ def _traced_weights(tree):
     return jax.tree_util.tree_map(lambda v: jnp.asarray(v) if type(v) is float else v, tree)
 
 
-def _with_prior(op, prior):
-    """The operator with the caller's own prior Module (its weights as given, not as traced arrays)."""
+def _checked_operator(built, prior):
+    """The operator of `_build` or `_from_gram` with the caller's own prior Module (its weights as given,
+    not as traced arrays), or the not-positive-definite error."""
+    op, finite = built
+    if isinstance(finite, jax.core.Tracer):  # under a caller's trace: the check is an error of its program
+        op = eqx.tree_at(lambda o: o.factor, op, eqx.error_if(op.factor, ~finite, NOT_POSITIVE_DEFINITE))
+    elif not bool(finite):
+        raise eqx.EquinoxRuntimeError(NOT_POSITIVE_DEFINITE)
     return eqx.tree_at(lambda o: o.prior, op, prior)
 
 
+# The whole-call programs: traced with their checks on the host (`checks_on_host`), so that the
+# persistent compilation cache keeps them; each returns what its caller checks.
 @eqx.filter_jit
 def _build(Ts, prior):
-    return IlluminationOperator._factorize(Ts, sum(gram(t) for t in Ts), prior)
+    with checks_on_host():
+        op = IlluminationOperator._factorize(Ts, sum(gram(t) for t in Ts), prior)
+    return op, jnp.all(jnp.isfinite(op.factor))
 
 
 @eqx.filter_jit
 def _from_gram(Ts, gram, prior):
-    return IlluminationOperator._factorize(Ts, gram, prior)
+    with checks_on_host():
+        op = IlluminationOperator._factorize(Ts, gram, prior)
+    return op, jnp.all(jnp.isfinite(op.factor))
 
 
 @eqx.filter_jit
-def _solve_rows(op, ys, nonneg, solver, throw):
-    return op._solve_rows(ys, nonneg, solver, throw)
+def _solve_rows(op, ys, nonneg, solver):
+    with checks_on_host():
+        solution = op._solve_rows(ys, nonneg, solver, throw=False)
+    return solution, jnp.all(jnp.isfinite(solution.env))
 
 
 def as_prior(prior=None, smooth=None, ridge=None, absolute: bool = False) -> Prior:
