@@ -1,6 +1,6 @@
 """Compiling against running: the programs a first call compiles, cold and with the persistent cache.
 
-    python benchmarks/bench_compile.py [--quick] [--out DIR] [--cases demo,solve,...]
+    python benchmarks/bench_compile.py [--quick] [--out DIR] [--cases demo,solve,...] [--baseline CHECKOUT]
 
 Every case runs in fresh processes (nothing compiled in memory) on one new, empty cache folder:
 - **cold**: the first process, empty cache: every program is compiled (what a new user meets);
@@ -15,7 +15,9 @@ stages' seconds from its results.json), `solve` (`hj.solve_illumination`, the de
 `solve_many` (`IlluminationOperator.solve_many` of 8 photos), `leverage` and `uncertainty`
 (`hj.cues`), `fit_lights` (one point light from a 5 cm start), `operator` (`hj.transport_operator`
 and its solve). Teapot fixture: 64x64 pixels and a 16x32 grid with `--quick`, else 128x128 and
-32x64 (the full `hiddenjax demo`). Writes `compile.png` and `results.json`.
+32x64 (the full `hiddenjax demo`). `--baseline CHECKOUT` runs every case a second time on another
+checkout of hiddenjax (e.g. `git worktree add /tmp/base <commit>`), in the same run, and prints
+the ratios. Writes `compile.png` and `results.json`.
 """
 
 import argparse
@@ -53,7 +55,7 @@ monitoring.register_event_duration_secs_listener(on_duration)
 monitoring.register_event_listener(on_event)
 import numpy as np
 import hiddenjax as hj
-hj.enable_compilation_cache()
+hj.enable_compilation_cache() if hasattr(hj, "enable_compilation_cache") else None  # a baseline: JAX's variables
 size, grid = (64, hj.EnvGrid(16, 32)) if quick else (128, hj.EnvGrid(32, 64))
 samples, pixel_samples = (8, 1) if quick else (16, 4)
 if case != "demo":
@@ -97,9 +99,13 @@ print(json.dumps(rows))
 """
 
 
-def run_case(case: str, quick: bool, cache: Path, out: Path) -> list[dict]:
+def run_case(case: str, quick: bool, cache: Path, out: Path, checkout: Path | None = None) -> list[dict]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
-    env["HIDDENJAX_CACHE"] = str(cache)
+    # JAX's own variables, which any version of hiddenjax honours (enable_compilation_cache keeps them)
+    env.update(JAX_COMPILATION_CACHE_DIR=str(cache), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+               JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1", JAX_COMPILATION_CACHE_MAX_SIZE=str(4 << 30))
+    if checkout is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(checkout), env.get("PYTHONPATH", "")])
     done = subprocess.run([sys.executable, "-c", _CHILD, case, "1" if quick else "0", str(out)], env=env,
                           capture_output=True, text=True)
     if done.returncode:
@@ -112,6 +118,7 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("out/bench_compile"))
     parser.add_argument("--quick", action="store_true", help="64x64 pixels, 16x32 grid")
     parser.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
+    parser.add_argument("--baseline", type=Path, help="another checkout of hiddenjax, measured in the same run")
     args = parser.parse_args(argv)
     cases = [c for c in args.cases.split(",") if c]
     unknown = sorted(set(cases) - set(CASES))
@@ -122,24 +129,37 @@ def main(argv=None):
     import jax
 
     results = dict(config=dict(quick=args.quick, cases=cases, jax=jax.__version__,
+                               baseline=None if args.baseline is None else str(args.baseline),
                                platform=os.environ.get("JAX_PLATFORMS") or jax.default_backend(),
                                cores=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()),
                    cases={})
     table = Table()
     table.append(("case", "cold: compiled / compile s / call s", "warm: loaded / compiled / call s", "run s"))
-    for case in cases:
+    def measure(case, checkout=None):
         with tempfile.TemporaryDirectory(prefix="hiddenjax-cache-") as cache:
             t0 = time.perf_counter()
-            cold, run = run_case(case, args.quick, Path(cache), args.out / case)
-            warm, _ = run_case(case, args.quick, Path(cache), args.out / case)
-        entry = dict(cold=cold, warm=warm, run=run, bench_seconds=time.perf_counter() - t0)
-        results["cases"][case] = entry
-        table.append((case, f"{cold['compiled']:4d} / {cold['compile_seconds']:5.2f} / {cold['seconds']:6.2f}",
+            cold, run = run_case(case, args.quick, Path(cache), args.out / case, checkout)
+            warm, _ = run_case(case, args.quick, Path(cache), args.out / case, checkout)
+        return dict(cold=cold, warm=warm, run=run, bench_seconds=time.perf_counter() - t0)
+
+    def row(name, entry):
+        cold, warm, run = entry["cold"], entry["warm"], entry["run"]
+        table.append((name, f"{cold['compiled']:4d} / {cold['compile_seconds']:5.2f} / {cold['seconds']:6.2f}",
                       f"{warm['cache_hits']:4d} / {warm['compiled']:3d} / {warm['seconds']:6.2f}",
                       f"{run['seconds']:6.2f}"))
         if cold["stages"]:
             stages = ", ".join(f"{k} {cold['stages'][k]:.2f} / {warm['stages'][k]:.2f} s" for k in cold["stages"])
-            print(f"  demo stages, cold / warm: {stages}", flush=True)
+            print(f"  {name} stages, cold / warm: {stages}", flush=True)
+
+    for case in cases:
+        results["cases"][case] = entry = measure(case)
+        row(case, entry)
+        if args.baseline:
+            entry["baseline"] = base = measure(case, args.baseline)
+            row(f"{case} (baseline)", base)
+            entry["speedup"] = {k: base[k]["seconds"] / entry[k]["seconds"] for k in ("cold", "warm", "run")}
+            print(f"  {case}: {', '.join(f'{k} {v:.2f}x' for k, v in entry['speedup'].items())} faster than the "
+                  f"baseline", flush=True)
     table.print_all()
 
     fig, ax = plt.subplots(figsize=(7, 3.6))

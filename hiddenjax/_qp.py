@@ -29,8 +29,9 @@ _HOST_CHECKS = contextvars.ContextVar("hiddenjax_host_checks", default=False)
 def checks_on_host():
     """Trace a program whose caller checks its results on the host: `check` adds no runtime error.
 
-    `eqx.error_if` raises from inside a compiled program through a host callback, and JAX never
-    writes a program with a host callback to its persistent compilation cache: the solvers' own
+    `eqx.error_if` raises from inside a compiled program through a host callback, and JAX keys a
+    program with a host callback on the callback's address in the process that compiled it, so
+    its persistent compilation cache never serves it to another process: the solvers' own
     top-level programs are traced under this context and raise from their returned values instead
     (the same messages), so a later process loads them rather than compiling them again.
     """

@@ -212,8 +212,9 @@ def _factorize(T, ridge, smooth, absolute, with_smooth, method, chunk, qr_chunk,
             R = jnp.linalg.qr(jnp.concatenate([jnp.sqrt(ls) * D, R]), mode="r")
         R = _chunked_qr(A, R, qr_chunk)
         inverse = jax.scipy.linalg.solve_triangular(R, eye, lower=False).T  # L^-1 with L = R^T
-    # no runtime error inside: `build` raises from `finite` (a program with a host callback is never
-    # written to the persistent compilation cache), or, under a caller's trace, `_checked` there
+    # no runtime error inside: `build` raises from `finite` (a program with a host callback is keyed on
+    # the callback's address, so the persistent cache never serves it to a later process), or, under
+    # a caller's trace, `_checked` there
     return LinearCues(T, inverse, jnp.asarray(ls), jnp.asarray(lr)), jnp.all(jnp.isfinite(inverse))
 
 

@@ -164,15 +164,38 @@ class L2Prior(Prior):
         `_solve` output `(x, B x - c, steps, result)` of the last solve: with `last`, one more solve
         on `B_w` (the solution), else the last weight-choosing one (None when there is none).
         """
-        grid, n = op.views[0].grid, self.passes()
-        R0 = prior_matrix(grid, op.smooth, op.ridge, op.B.dtype)
-        gram = op.B - R0
+        n = self.passes()
+        R0, gram = self.parts(op)
         start = (op.B, op.factor, R0, c, op.smooth)
         if n == 0:
             return start + ((_solve(op.B, op.factor, c, solver, nonneg) if last else None),)
 
+        def step(k, state):
+            # Every solve is this one call, so a program holds one copy of the solver (a Python loop
+            # inlined n + 1 copies into a caller's jit, and each was compiled)
+            B, factor, R, c_t, smooth, _ = state
+            out = _solve(B, factor, c_t, solver, nonneg)
+            return self.after_solve(op, gram, c, k, out[0], (B, factor, R, c_t, smooth)) + (out,)
+
+        first = jax.eval_shape(lambda: _solve(op.B, op.factor, c, solver, nonneg))
+        zeros = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), first)
+        return jax.lax.fori_loop(0, n + 1 if last else n, step, start + (zeros,))
+
+    def parts(self, op):
+        """`(R, A^T A)`: the operator's prior matrix (absolute weights) and its data term `B - R`."""
+        R0 = prior_matrix(op.views[0].grid, op.smooth, op.ridge, op.B.dtype)
+        return R0, op.B - R0
+
+    def after_solve(self, op, gram, c, k, x, state):
+        """The state `(B, factor, R, c_t, smooth)` for the solve after solve `k` (map `x`): the threshold's
+        columns from the first map, the reweighted normal matrix while `k < passes()` (class doc)."""
+        B, factor, R, c_t, smooth = state
+        c_t = jnp.where(k == 0, self.thresholded(op.B, c, x), c_t)  # x_0 is the thesis' map
+        if not self.reweight:
+            return B, factor, R, c_t, smooth
+
         def reweight(k, x, smooth):
-            """`(B_w, its factor, R_w, smooth)` from the map `x` of solve `k` (class doc)."""
+            grid = op.views[0].grid
             if self.adapt:
                 smooth = jnp.where(k == min(1, self.reweight - 1), op.smooth * self.spread_factor(x, jnp.diagonal(gram)),
                                    smooth)
@@ -180,27 +203,23 @@ class L2Prior(Prior):
                 grid.size, dtype=gram.dtype)
             return gram + R, _cholesky(gram + R), R, smooth
 
-        def step(k, state):
-            # Every solve is this one call, so a program holds one copy of the solver (a Python loop
-            # inlined n + 1 copies into a caller's jit, and each was compiled)
-            B, factor, R, c_t, smooth, _ = state
-            out = _solve(B, factor, c_t, solver, nonneg)
-            c_t = jnp.where(k == 0, self.thresholded(op.B, c, out[0]), c_t)  # x_0 is the thesis' map
-            if self.reweight:
-                B, factor, R, smooth = jax.lax.cond(k < n, reweight, lambda k, x, smooth: (B, factor, R, smooth),
-                                                    k, out[0], smooth)
-            return B, factor, R, c_t, smooth, out
-
-        first = jax.eval_shape(lambda: _solve(op.B, op.factor, c, solver, nonneg))
-        zeros = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), first)
-        return jax.lax.fori_loop(0, n + 1 if last else n, step, start + (zeros,))
+        keep = lambda k, x, smooth: (B, factor, R, smooth)
+        B, factor, R, smooth = jax.lax.cond(k < self.passes(), reweight, keep, k, x, smooth)
+        return B, factor, R, c_t, smooth
 
     def solve(self, op, c, ys, nonneg, solver):
+        self.check_signed(nonneg)
+        B, factor, R, c_t, smooth, out = self.reweighted(op, c, nonneg, solver, last=True)
+        return self.solution(op, c, c_t, ys, R, out, smooth, nonneg)
+
+    def check_signed(self, nonneg):
         if (self.reweight or self.thresholds()) and not nonneg:
             raise ValueError("the HDR-aware prior (reweight > 0 or threshold > 0, the 'hdr' default) weights the "
                              "smoothness by log x and sets dim cells to zero, which needs x >= 0; solve a signed map "
                              "with prior='l2' (the default when nonneg=False)")
-        B, factor, R, c_t, smooth, out = self.reweighted(op, c, nonneg, solver, last=True)
+
+    def solution(self, op, c, c_t, ys, R, out, smooth, nonneg):
+        """`solve`'s output from the last `_solve` output `out` on `B = A^T A + R` for the columns `c_t`."""
         x, grad, steps, result = out
         # |A x - y|^2 + x^T R x from the residual itself: x^T B x - 2 c^T x + |y|^2 would lose the
         # digits that tell two scenes' energies apart to cancellation (posterior weights use them)
@@ -447,8 +466,12 @@ class IlluminationOperator(eqx.Module):
         _check_signs(ys, nonneg)
         if len({y.shape[1:] for y in ys}) != 1:
             raise ValueError("all views' images must have the same number of channels")
-        if compiles_whole(self.views):  # one program per shape, whatever the weights (passed as arrays)
-            solution, finite = _solve_rows(_traced_weights(self), ys, nonneg, _traced_weights(solver))
+        if compiles_whole(self.views):  # a few programs per shape, whatever the weights (passed as arrays)
+            op, solver = _traced_weights(self), _traced_weights(solver)
+            if isinstance(self.prior, L2Prior):  # the solver's program, shared by every L2 prior, between small ones
+                solution, finite = _solve_l2_stepwise(op, ys, nonneg, solver)
+            else:
+                solution, finite = _solve_rows(op, ys, nonneg, solver)
             if isinstance(finite, jax.core.Tracer):  # under a caller's trace: the checks are errors of its program
                 env = eqx.error_if(solution.env, ~finite, NOT_POSITIVE_DEFINITE)
                 if throw:
@@ -553,6 +576,45 @@ def _solve_rows(op, ys, nonneg, solver):
     with checks_on_host():
         solution = op._solve_rows(ys, nonneg, solver, throw=False)
     return solution, jnp.all(jnp.isfinite(solution.env))
+
+
+def _solve_l2_stepwise(op, ys, nonneg, solver):
+    """`_solve_rows` for an L2 prior, its solves one at a time: `(IlluminationSolution, finite)`.
+
+    The same computation as `L2Prior.solve`, with each solve a call of the solver's own program
+    (`_solve`: one per problem shape and solver, shared by every L2 prior and weight) and the
+    steps between them small programs of their own, rather than one program per prior that holds
+    the solver (the solver is most of the compiling).
+    """
+    prior = op.prior
+    prior.check_signed(nonneg)
+    c, R0, gram = _l2_start(op, ys)
+    state = (op.B, op.factor, R0, c, op.smooth)
+    n = prior.passes()
+    for k in range(n + 1):
+        out = _solve(*state[:2], state[3], solver, nonneg)
+        if k < n:
+            state = _l2_after_solve(op, gram, c, jnp.asarray(k), out[0], state)
+    return _l2_solution(op, c, state, ys, out, nonneg)
+
+
+@eqx.filter_jit
+def _l2_start(op, ys):
+    return (sum(rmatvec(t, y) for t, y in zip(op.views, ys)),) + op.prior.parts(op)
+
+
+@eqx.filter_jit
+def _l2_after_solve(op, gram, c, k, x, state):
+    with checks_on_host():
+        return op.prior.after_solve(op, gram, c, k, x, state)
+
+
+@eqx.filter_jit
+def _l2_solution(op, c, state, ys, out, nonneg):
+    B, factor, R, c_t, smooth = state
+    x, objective, kkt, steps, result, _, smooth = op.prior.solution(op, c, c_t, ys, R, out, smooth, nonneg)
+    env = x.reshape(op.views[0].grid.shape + x.shape[1:])
+    return IlluminationSolution(env, objective, kkt, steps, result, smooth, op.ridge, None), jnp.all(jnp.isfinite(env))
 
 
 def as_prior(prior=None, smooth=None, ridge=None, absolute: bool = False) -> Prior:
