@@ -40,7 +40,10 @@ CASES = ("demo", "solve", "solve_many", "leverage", "uncertainty", "fit_lights",
 
 # One case in this process: prints one JSON line (compilations, compile seconds, cache loads, wall seconds).
 _CHILD = r"""
-import json, sys, time
+import json, os, sys, time
+if os.environ.get("BENCH_COMPILE_CHECKOUT"):  # the baseline: its package ahead of an editable install's finder
+    sys.path.insert(0, os.environ["BENCH_COMPILE_CHECKOUT"])
+    sys.meta_path[:] = [f for f in sys.meta_path if not type(f).__module__.startswith("__editable__")]
 from jax import monitoring
 case, quick, out = sys.argv[1], sys.argv[2] == "1", sys.argv[3]
 counts = dict(compiles=0, compile_seconds=0.0, cache_hits=0)
@@ -54,6 +57,7 @@ def on_event(name, **_):
 monitoring.register_event_duration_secs_listener(on_duration)
 monitoring.register_event_listener(on_event)
 import numpy as np
+from pathlib import Path
 import hiddenjax as hj
 hj.enable_compilation_cache() if hasattr(hj, "enable_compilation_cache") else None  # a baseline: JAX's variables
 size, grid = (64, hj.EnvGrid(16, 32)) if quick else (128, hj.EnvGrid(32, 64))
@@ -95,7 +99,7 @@ for _ in range(2):
     # JAX records a backend-compile event for a program loaded from the cache too: compiled = events - loaded
     rows.append(dict(counts, compiled=counts["compiles"] - counts["cache_hits"], seconds=time.perf_counter() - t0,
                      stages=value if isinstance(value, dict) else None))
-print(json.dumps(rows))
+print(json.dumps(dict(rows=rows, package=str(Path(hj.__file__).parent))))
 """
 
 
@@ -105,12 +109,14 @@ def run_case(case: str, quick: bool, cache: Path, out: Path, checkout: Path | No
     env.update(JAX_COMPILATION_CACHE_DIR=str(cache), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
                JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1", JAX_COMPILATION_CACHE_MAX_SIZE=str(4 << 30))
     if checkout is not None:
-        env["PYTHONPATH"] = os.pathsep.join([str(checkout), env.get("PYTHONPATH", "")])
+        env["BENCH_COMPILE_CHECKOUT"] = str(checkout.resolve())
     done = subprocess.run([sys.executable, "-c", _CHILD, case, "1" if quick else "0", str(out)], env=env,
                           capture_output=True, text=True)
     if done.returncode:
         raise RuntimeError(f"case {case} failed:\n{done.stderr[-3000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    print(f"  {case}: hiddenjax from {out['package']}", flush=True)
+    return out["rows"]
 
 
 def main(argv=None):
