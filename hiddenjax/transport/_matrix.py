@@ -142,13 +142,14 @@ class TransportMatrix(PixelRows, eqx.Module):
 
 def check_envmap(grid: EnvGrid, envmap):
     """`envmap (H, W)` or `(H, W, C)` on `grid` -> `(N,)` or `(N, C)`; clear errors on bad input."""
-    envmap = jnp.asarray(envmap)
+    traced = isinstance(envmap, jax.core.Tracer)
+    envmap = envmap if traced else np.asarray(envmap)  # checked on the host: no JAX program
     if envmap.ndim not in (2, 3) or envmap.shape[:2] != grid.shape:
         raise ValueError(
             f"envmap shape {envmap.shape} does not match the grid {grid.shape}; pass (H, W) or (H, W, 3) "
             "on the grid (use grid.downsample for a full-resolution panorama)"
         )
-    if not isinstance(envmap, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(envmap))):
+    if not traced and not np.all(np.isfinite(envmap)):
         raise ValueError("envmap contains non-finite values (NaN or inf)")
     return envmap.reshape((grid.size,) + envmap.shape[2:])
 
@@ -162,5 +163,10 @@ def render(T: TransportMatrix, envmap) -> jax.Array:
     """
     if not isinstance(T, TransportMatrix) and hasattr(T, "render"):
         return T.render(envmap)  # a TransportOperator (hj.transport_operator)
-    x = check_envmap(T.grid, envmap)
-    return T.rows_to_image(T.A @ x.astype(T.A.dtype))
+    return _render(T, check_envmap(T.grid, envmap))
+
+
+@eqx.filter_jit
+def _render(T: TransportMatrix, x):
+    """`render`'s product and scatter as one program (eagerly they were a dozen, each compiled)."""
+    return T.rows_to_image(T.A @ jnp.asarray(x).astype(T.A.dtype))
