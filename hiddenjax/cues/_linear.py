@@ -23,7 +23,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, gram_matrix, prior_matrix, regularization_weights
-from ..solvers._illumination import _check_image, _check_weights, fold_rows, transpose_times
+from ..solvers._illumination import _check_image, _check_weights, _traced_weights, fold_rows, transpose_times
 from ..transport import TransportMatrix, TransportOperator
 
 _CHUNK = 2048  # pixels per block of `A L^-T`: 2048 x N floats (16 MiB at N = 2048)
@@ -75,7 +75,7 @@ class LinearCues(eqx.Module):
         _check_weights(smooth, ridge)
         with_smooth = not (isinstance(smooth, (int, float)) and smooth == 0)
         passes = _passes(T.A.dtype, ridge, absolute)
-        weights = _as_arrays(ridge, smooth)  # arguments, not constants: one program for every weight
+        weights = _traced_weights((ridge, smooth))  # arguments, not constants: one program for every weight
         if method == "cholesky":
             cues, finite = _factorize(T, *weights, absolute, with_smooth, "cholesky", chunk, qr_chunk, passes)
             if isinstance(finite, jax.core.Tracer):  # under a caller's trace: the check is an error of its program
@@ -92,15 +92,6 @@ class LinearCues(eqx.Module):
         if method == "cholesky":
             warnings.warn("the shifted Cholesky factor of the formed A^T A failed in "
                           f"{jnp.dtype(T.A.dtype).name}; the cues use the QR factorization instead", stacklevel=2)
-        return cues
-            # the shift (from the mean of diag(A^T A)) fell short of the rounding of the formed A^T A,
-            # which scales with its largest eigenvalue: a strongly correlated A
-        cues, finite = _factorize(T, *weights, absolute, with_smooth, "qr", chunk, qr_chunk, passes, traced)
-        if method == "cholesky" and bool(finite):
-            warnings.warn("the shifted Cholesky factor of the formed A^T A failed in "
-                          f"{jnp.dtype(T.A.dtype).name}; the cues use the QR factorization instead", stacklevel=2)
-        if not traced and not bool(finite):
-            raise ValueError(SINGULAR)
         return cues
 
     def _blocks(self, fn, chunk: int):
@@ -190,11 +181,6 @@ class LinearCues(eqx.Module):
         Linv = self.inverse_factor
         columns = Linv.T @ Linv[:, idx]  # B^-1 e_k, (N, K)
         return jax.vmap(self.T.rows_to_image, in_axes=1)(self.T.A @ columns)
-
-
-def _as_arrays(*weights):
-    """Python numbers as JAX scalars (jit arguments rather than constants); traced values as they are."""
-    return tuple(jnp.asarray(w) if isinstance(w, (int, float)) else w for w in weights)
 
 
 @eqx.filter_jit

@@ -420,7 +420,7 @@ class IlluminationOperator(eqx.Module):
         prior = as_prior(prior, smooth, ridge, absolute)
         _check_determined(Ts, prior)
         if compiles_whole(Ts):  # one program: A^T A, the prior's normal matrix and its factor
-            return _checked_operator(_build(Ts, _traced_weights(prior)), prior)
+            return _checked_operator(_factorize_whole(Ts, None, _traced_weights(prior)), prior)
         return cls.from_gram(Ts, sum(gram(t) for t in Ts), prior=prior)
 
     @classmethod
@@ -436,7 +436,7 @@ class IlluminationOperator(eqx.Module):
         prior = as_prior(prior, smooth, ridge, absolute)
         _check_determined(Ts, prior)
         if compiles_whole(Ts):
-            return _checked_operator(_from_gram(Ts, gram, _traced_weights(prior)), prior)
+            return _checked_operator(_factorize_whole(Ts, gram, _traced_weights(prior)), prior)
         return cls._factorize(Ts, gram, prior)
 
     @classmethod
@@ -471,7 +471,7 @@ class IlluminationOperator(eqx.Module):
             if isinstance(self.prior, L2Prior):  # the solver's program, shared by every L2 prior, between small ones
                 solution, finite = _solve_l2_stepwise(op, ys, nonneg, solver)
             else:
-                solution, finite = _solve_rows(op, ys, nonneg, solver)
+                solution, finite = _solve_whole(op, ys, nonneg, solver)
             if isinstance(finite, jax.core.Tracer):  # under a caller's trace: the checks are errors of its program
                 env = eqx.error_if(solution.env, ~finite, NOT_POSITIVE_DEFINITE)
                 if throw:
@@ -490,6 +490,10 @@ class IlluminationOperator(eqx.Module):
         x, objective, kkt, steps, result, sources, smooth = self.prior.solve(self, c, ys, nonneg, solver)
         if throw:
             x = check(x, jnp.any(result != SUCCESS), MAX_STEPS_MESSAGE)
+        return self._solution(x, objective, kkt, steps, result, sources, smooth)
+
+    def _solution(self, x, objective, kkt, steps, result, sources, smooth) -> IlluminationSolution:
+        """A prior's `solve` output as an `IlluminationSolution`, the map on the grid."""
         env = x.reshape(self.views[0].grid.shape + x.shape[1:])
         return IlluminationSolution(env, objective, kkt, steps, result, smooth, self.ridge, sources)
 
@@ -529,23 +533,24 @@ def _as_columns(stack):
 
 
 def compiles_whole(Ts) -> bool:
-    """Whether a build or solve on these views runs as one compiled program: dense matrices on one
-    device (a matrix-free operator forms `A^T A` by host-driven blocks, a row-sharded matrix reduces
-    over its mesh) and not already under a trace (then the caller's program holds it)."""
+    """Whether a build or solve on these views runs as hiddenjax's own compiled programs (`_factorize_whole`,
+    `_solve_whole`, `_solve_l2_stepwise`): dense matrices on one device (a matrix-free operator forms
+    `A^T A` by host-driven blocks, a row-sharded matrix reduces over its mesh), not traced themselves."""
     return all(isinstance(t, TransportMatrix) and not isinstance(t.A, jax.core.Tracer) and not _sharded(t) for t in Ts)
 
 
 def _traced_weights(tree):
-    """`tree` with its Python float leaves (a prior's weights, a solver's `rtol`) as JAX scalars.
+    """`tree` with its Python number leaves (a prior's weights, a solver's `rtol`, cue weights) as JAX scalars.
 
-    `eqx.filter_jit` keys its cache on non-array leaves: as floats, every new weight would compile
-    the solver again; as (weakly typed) arrays they are arguments of one program.
+    `eqx.filter_jit` keys its cache on non-array leaves: as numbers, every new weight would compile
+    the program again; as (weakly typed) arrays they are arguments of one program. Static fields
+    are not leaves, and booleans stay as they are.
     """
-    return jax.tree_util.tree_map(lambda v: jnp.asarray(v) if type(v) is float else v, tree)
+    return jax.tree_util.tree_map(lambda v: jnp.asarray(v) if type(v) in (int, float) else v, tree)
 
 
 def _checked_operator(built, prior):
-    """The operator of `_build` or `_from_gram` with the caller's own prior Module (its weights as given,
+    """The operator of `_factorize_whole` with the caller's own prior Module (its weights as given,
     not as traced arrays), or the not-positive-definite error."""
     op, finite = built
     if isinstance(finite, jax.core.Tracer):  # under a caller's trace: the check is an error of its program
@@ -558,28 +563,22 @@ def _checked_operator(built, prior):
 # The whole-call programs: traced with their checks on the host (`checks_on_host`), so that the
 # persistent compilation cache keeps them; each returns what its caller checks.
 @eqx.filter_jit
-def _build(Ts, prior):
+def _factorize_whole(Ts, data_gram, prior):
+    """`build` (`data_gram=None`: the views' own `sum_v A_v^T A_v`) or `from_gram`, and whether the factor is finite."""
     with checks_on_host():
-        op = IlluminationOperator._factorize(Ts, sum(gram(t) for t in Ts), prior)
+        op = IlluminationOperator._factorize(Ts, sum(gram(t) for t in Ts) if data_gram is None else data_gram, prior)
     return op, jnp.all(jnp.isfinite(op.factor))
 
 
 @eqx.filter_jit
-def _from_gram(Ts, gram, prior):
-    with checks_on_host():
-        op = IlluminationOperator._factorize(Ts, gram, prior)
-    return op, jnp.all(jnp.isfinite(op.factor))
-
-
-@eqx.filter_jit
-def _solve_rows(op, ys, nonneg, solver):
+def _solve_whole(op, ys, nonneg, solver):
     with checks_on_host():
         solution = op._solve_rows(ys, nonneg, solver, throw=False)
     return solution, jnp.all(jnp.isfinite(solution.env))
 
 
 def _solve_l2_stepwise(op, ys, nonneg, solver):
-    """`_solve_rows` for an L2 prior, its solves one at a time: `(IlluminationSolution, finite)`.
+    """`_solve_whole` for an L2 prior, its solves one at a time: `(IlluminationSolution, finite)`.
 
     The same computation as `L2Prior.solve`, with each solve a call of the solver's own program
     (`_solve`: one per problem shape and solver, shared by every L2 prior and weight) and the
@@ -594,7 +593,7 @@ def _solve_l2_stepwise(op, ys, nonneg, solver):
     for k in range(n + 1):
         out = _solve(*state[:2], state[3], solver, nonneg)
         if k < n:
-            state = _l2_after_solve(op, gram, c, jnp.asarray(k), out[0], state)
+            state = _l2_after_solve(op, gram, c, np.int32(k), out[0], state)  # an argument: one program for every k
     return _l2_solution(op, c, state, ys, out, nonneg)
 
 
@@ -612,9 +611,8 @@ def _l2_after_solve(op, gram, c, k, x, state):
 @eqx.filter_jit
 def _l2_solution(op, c, state, ys, out, nonneg):
     B, factor, R, c_t, smooth = state
-    x, objective, kkt, steps, result, _, smooth = op.prior.solution(op, c, c_t, ys, R, out, smooth, nonneg)
-    env = x.reshape(op.views[0].grid.shape + x.shape[1:])
-    return IlluminationSolution(env, objective, kkt, steps, result, smooth, op.ridge, None), jnp.all(jnp.isfinite(env))
+    solution = op._solution(*op.prior.solution(op, c, c_t, ys, R, out, smooth, nonneg))
+    return solution, jnp.all(jnp.isfinite(solution.env))
 
 
 def as_prior(prior=None, smooth=None, ridge=None, absolute: bool = False) -> Prior:
@@ -698,14 +696,13 @@ def _check_weights(smooth, ridge):
 
 def _check_image(T: TransportMatrix, image):
     """The observed pixels of `image`, checked (finite, not all zero) on the host unless traced."""
-    if isinstance(image, jax.core.Tracer):
-        if image.ndim not in (2, 3):
-            raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
-        return T.image_to_rows(image)
-    image = np.asarray(image)
+    traced = isinstance(image, jax.core.Tracer)
+    image = image if traced else np.asarray(image)
     if image.ndim not in (2, 3):
         raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
     y = T.image_to_rows(image)
+    if traced:
+        return y
     if not np.all(np.isfinite(y)):
         raise ValueError("image has non-finite values (NaN or inf) inside the transport matrix's mask")
     if not np.any(y != 0):
