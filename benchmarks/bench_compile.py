@@ -64,9 +64,16 @@ size, grid = (64, hj.EnvGrid(16, 32)) if quick else (128, hj.EnvGrid(32, 64))
 samples, pixel_samples = (8, 1) if quick else (16, 4)
 if case != "demo":
     setup = hj.scenes.object_on_plane("teapot", width=size, height=size)
-    T = hj.transport_matrix(setup.scene, setup.camera, grid, samples=samples, pixel_samples=pixel_samples)
-    sky = hj.scenes.procedural_sky(128, 256)
-    photo = np.asarray(hj.reference_render(setup.scene, setup.camera, sky, samples=64, seed=1))
+    fixture = Path(out).parent / f"fixture_{size}"  # built by the first case that needs it, read by the others
+    if (fixture / "photo.npy").exists():
+        T, photo = hj.TransportMatrix.load(fixture / "A.npz"), np.load(fixture / "photo.npy")
+    else:
+        T = hj.transport_matrix(setup.scene, setup.camera, grid, samples=samples, pixel_samples=pixel_samples)
+        sky = hj.scenes.procedural_sky(128, 256)
+        photo = np.asarray(hj.reference_render(setup.scene, setup.camera, sky, samples=64, seed=1))
+        fixture.mkdir(parents=True, exist_ok=True)
+        T.save(fixture / "A.npz")
+        np.save(fixture / "photo.npy", photo)
 if case == "demo":
     from hiddenjax.cli import demo as run_demo
     import argparse

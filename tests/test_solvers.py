@@ -393,3 +393,27 @@ def test_chosen_weights_always_factor_in_float32():
         out = hj.solvers.choose_weights(twins, image, smooth=0.0, ridge=1.0, scales=[1e-30, 1e-20, 1e-12, 1e-3])
         sol = hj.solve_illumination(twins, image, smooth=out["smooth"], ridge=out["ridge"])
         assert np.all(np.isfinite(np.asarray(sol.env)))
+
+
+def test_accelerator_block_sizes_give_the_same_solution(x64, monkeypatch):
+    """On an accelerator the free block is padded to 1024 or N (2 compiled branches, not 20): same optimum."""
+    from hiddenjax import _qp
+
+    assert _qp._capacities(2048, "cpu")[:3] == [64, 128, 192] and len(_qp._capacities(2048, "cpu")) == 20
+    assert _qp._capacities(2048, "gpu") == [1024, 2048] and _qp._capacities(700, "gpu") == [700]
+    rng = np.random.default_rng(0)
+    A = np.abs(rng.normal(size=(1500, 1100))) * (rng.random((1500, 1100)) < 0.05)
+    B = jnp.asarray(A.T @ A + 0.1 * np.eye(1100))
+    c = jnp.asarray(A.T @ (rng.normal(size=1500) + 0.3))
+    solve = lambda: jax.jit(lambda B, c: _qp._solve(B, _qp._cholesky(B), c, ProjectedNewton(), True))(B, c)
+    cpu = solve()
+    original = _qp._capacities
+    used = []
+    monkeypatch.setattr(_qp, "_capacities", lambda n, backend=None: used.append(n) or original(n, "gpu"))
+    jax.clear_caches()  # trace the solver again, with the accelerator's sizes
+    gpu = solve()
+    assert used == [1100]
+    x, grad = np.asarray(gpu[0]), np.asarray(gpu[1])
+    assert 100 < np.sum(x > 0) < 1024  # the face is smaller than a block: the padding is exercised
+    assert int(gpu[3]) == 0 and np.max(np.abs(np.minimum(x, grad))) <= 1e-9 * np.abs(np.asarray(c)).max()
+    np.testing.assert_allclose(x, np.asarray(cpu[0]), rtol=0, atol=1e-9 * np.abs(x).max())
