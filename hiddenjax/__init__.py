@@ -30,6 +30,7 @@ from . import solvers as solvers
 from ._compilation_cache import compilation_cache_dir as compilation_cache_dir
 from ._compilation_cache import default_cache_dir as default_cache_dir
 from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
+from ._jit import COMPILER_OPTIONS as COMPILER_OPTIONS
 from ._scene_file import SceneFile as SceneFile
 from ._scene_file import load_scene as load_scene
 from .scene import Camera as Camera

@@ -12,6 +12,7 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from ._jit import filter_jit
 
 NOT_POSITIVE_DEFINITE = (
     "A^T A + smooth D^T D + ridge I is not positive definite in this precision: the weights are too small "
@@ -82,7 +83,7 @@ def _kkt_residual(grad, c, x, nonneg):
     return jnp.max(jnp.abs(violation), axis=0) / jnp.maximum(jnp.max(jnp.abs(c), axis=0), 1e-30)
 
 
-@eqx.filter_jit
+@filter_jit
 def _solve(B, factor, c, solver, nonneg):
     """`c (N,)` or `(N, K)`: `x`, `B x - c`, steps and result code per column. `factor`: B's lower Cholesky factor.
 

@@ -132,6 +132,9 @@ def test_a_solve_and_the_cues_are_a_few_programs_compiled_once_for_every_weight(
     T = hj.transport_matrix(small_setup.scene, small_setup.camera, grid, samples=4, pixel_samples=1)
     sky = hj.scenes.procedural_sky(32, 64)
     photo = np.asarray(hj.render(T, grid.downsample(sky)))
+    import jax.numpy as jnp
+
+    jnp.asarray(0.5)  # JAX's transfer of a Python number (a program of its own, once per process, whoever asks)
     first = lowered_programs(lambda: np.asarray(hj.solve_illumination(T, photo).env))
     assert first <= 5, first
     hj.solve_illumination(T, photo, prior=hj.solvers.L2Prior(smooth=0.2))  # L2 without reweighting: its own steps
@@ -181,3 +184,26 @@ def test_the_solve_and_the_cues_are_loaded_from_the_cache_in_a_second_process(tm
     assert runs[0]["misses"] >= 3  # the build, the solve, the cue factorization and map: compiled
     assert runs[1]["misses"] == 0 and runs[1]["hits"] >= runs[0]["misses"], runs
     assert runs[1]["env"] == runs[0]["env"]
+
+
+def test_every_program_of_the_package_is_compiled_with_its_compiler_options():
+    """hiddenjax's programs go through `hiddenjax._jit` (Triton GEMM tuning off on GPUs), never a bare jit."""
+    import re
+    from pathlib import Path
+
+    bare = []
+    for path in Path(hj.__file__).parent.rglob("*.py"):
+        if path.name == "_jit.py":
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            code = line.split("#")[0]
+            if re.search(r"(?<!`)\b(jax\.jit|eqx\.filter_jit)\b(?!`)", code) and not code.strip().startswith(("`", '"')):
+                bare.append(f"{path.name}:{number}: {line.strip()}")
+    assert not bare, bare
+    assert hj.COMPILER_OPTIONS == {"xla_gpu_enable_triton_gemm": False}
+    # the CPU backend accepts the option (and ignores it)
+    import jax.numpy as jnp
+
+    from hiddenjax._jit import jit
+
+    assert float(jit(lambda a: a @ a)(jnp.eye(3))[0, 0]) == 1.0

@@ -412,7 +412,7 @@ def test_accelerator_block_sizes_give_the_same_solution(x64, monkeypatch):
     monkeypatch.setattr(_qp, "_capacities", lambda n, backend=None: used.append(n) or original(n, "gpu"))
     jax.clear_caches()  # trace the solver again, with the accelerator's sizes
     gpu = solve()
-    assert used == [1100]
+    assert set(used) == {1100}
     x, grad = np.asarray(gpu[0]), np.asarray(gpu[1])
     assert 100 < np.sum(x > 0) < 1024  # the face is smaller than a block: the padding is exercised
     assert int(gpu[3]) == 0 and np.max(np.abs(np.minimum(x, grad))) <= 1e-9 * np.abs(np.asarray(c)).max()

@@ -8,6 +8,7 @@ import numpy as np
 from ..cues import saliency
 from ._labels import PolarGrid, localization_errors, locate
 from ._network import CornerNet, predict_heatmap
+from .._jit import filter_jit
 
 
 class Localization(eqx.Module):
@@ -18,7 +19,7 @@ class Localization(eqx.Module):
     heatmap: jax.Array
 
 
-@eqx.filter_jit
+@filter_jit
 def _localize_batch(model, images, grid):
     heat = jax.vmap(lambda y: predict_heatmap(model, y))(images)
     pos, cov = jax.vmap(lambda h: locate(h, grid))(heat)

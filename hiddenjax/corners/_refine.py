@@ -19,6 +19,7 @@ import numpy as np
 from ..solvers import VariationalOptimizer, VariationalSolution, variational_minimize
 from ._render import DifferentialRenderer
 from ._soft import SoftCornerRenderer
+from .._jit import jit
 
 
 def _blocks(image, block: int):
@@ -89,5 +90,5 @@ def refine_location(renderer: DifferentialRenderer | SoftCornerRenderer, observe
     if optimizer is None:
         optimizer = VariationalOptimizer(gradient="pathwise" if isinstance(renderer, SoftCornerRenderer) else "score")
     loss = rendering_loss(renderer, observed, samples=samples, negative=negative, block=block)
-    solve = jax.jit(lambda m, c, k: variational_minimize(loss, m, c, key=k, steps=steps, optimizer=optimizer))
+    solve = jit(lambda m, c, k: variational_minimize(loss, m, c, key=k, steps=steps, optimizer=optimizer))
     return solve(jnp.asarray(mean, jnp.float32), jnp.asarray(cov, jnp.float32), key)

@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 from ..io._files import atomic_path
 from ._labels import PolarGrid
 from ._network import CornerNet, heatmap_loss
+from .._jit import filter_jit
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,13 +87,13 @@ def train(model: CornerNet, images, positions, config: TrainConfig = TrainConfig
     if checkpoint is not None and Path(checkpoint).exists():
         model, state, start, losses, vals = load_checkpoint(checkpoint, model, state)
 
-    @eqx.filter_jit
+    @filter_jit
     def step(model, state, x, p, key):
         loss, g = eqx.filter_value_and_grad(_batch_loss)(model, x, p, key, grid, config, True)
         updates, state = optimizer.update(g, state, eqx.filter(model, eqx.is_array))
         return eqx.apply_updates(model, updates), state, loss
 
-    evaluate = eqx.filter_jit(lambda m, x, p: _batch_loss(m, x, p, None, grid, config, False))
+    evaluate = filter_jit(lambda m, x, p: _batch_loss(m, x, p, None, grid, config, False))
 
     best = [None, np.inf]
 

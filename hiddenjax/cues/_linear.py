@@ -25,6 +25,7 @@ from jaxtyping import Array, Float
 from ..solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, gram_matrix, prior_matrix, regularization_weights
 from ..solvers._illumination import _check_image, _check_weights, _traced_weights, fold_rows, transpose_times
 from ..transport import TransportMatrix, TransportOperator
+from .._jit import filter_jit
 
 _CHUNK = 2048  # pixels per block of `A L^-T`: 2048 x N floats (16 MiB at N = 2048)
 SINGULAR = "A^T A + R is singular (a direction no pixel sees, and zero weights): use ridge > 0"
@@ -101,13 +102,13 @@ class LinearCues(eqx.Module):
         put = lambda out, start, rows: jax.lax.dynamic_update_slice_in_dim(out, fn(rows), start, axis=0)
         return fold_rows(A, put, jnp.zeros((A.shape[0],) + shape.shape[1:], shape.dtype), chunk)
 
-    @eqx.filter_jit
+    @filter_jit
     def leverage(self, chunk: int = _CHUNK) -> Float[Array, " P"]:
         """`h_ii = a_i (A^T A + R)^-1 a_i^T` (eq. 6.2) for every observed pixel, `(P,)` in `[0, 1]`."""
         Linv = self.inverse_factor
         return self._blocks(lambda a: jnp.sum(jnp.square(a @ Linv.T), axis=1), chunk)
 
-    @eqx.filter_jit
+    @filter_jit
     def effective_dof(self) -> Float[Array, ""]:
         """`trace(H) = sum_i h_ii`, the effective number of parameters: `N` for `R = 0` and full rank.
 
@@ -183,7 +184,7 @@ class LinearCues(eqx.Module):
         return jax.vmap(self.T.rows_to_image, in_axes=1)(self.T.A @ columns)
 
 
-@eqx.filter_jit
+@filter_jit
 def _factorize(T, ridge, smooth, absolute, with_smooth, method, chunk, qr_chunk, passes):
     """`(LinearCues, whether L^-1 is finite)`: the factorization of `LinearCues.build`, one program per method."""
     ls, lr = regularization_weights(T, smooth, ridge, absolute)
@@ -208,7 +209,7 @@ def _checked(cues, finite):
     return eqx.tree_at(lambda c: c.inverse_factor, cues, eqx.error_if(cues.inverse_factor, ~finite, SINGULAR))
 
 
-@eqx.filter_jit
+@filter_jit
 def _uncertainty(cues, noise):
     std = jnp.sqrt(jnp.sum(jnp.square(cues.inverse_factor), axis=0))
     if noise is not None:
@@ -216,13 +217,13 @@ def _uncertainty(cues, noise):
     return std.reshape(cues.T.grid.shape)
 
 
-@eqx.filter_jit
+@filter_jit
 def _estimate(cues, y):
     x = cues._estimate_rows(y)
     return x.reshape(cues.T.grid.shape + x.shape[1:])
 
 
-@eqx.filter_jit
+@filter_jit
 def _cooks_distance(cues, y, chunk):
     return cues._cooks_distance(y, chunk)
 

@@ -26,6 +26,7 @@ from ._unions import Boxes, Cylinders
 from ._heightfield import HeightField
 from ._voxels import Voxels, voxel_rays, voxel_visibility
 from ._objectives import Objective
+from .._jit import filter_jit
 
 LIFT = 1e-4  # of the footprint: how far `object_on_plane` (so `stage`) lifts an object off the plane
 
@@ -184,7 +185,7 @@ def _bare_matrix(soft: SoftTransport, plane) -> Float[Array, "P N"]:
     return soft.matrix(Occluder.from_triangles(plane, np.zeros(len(plane), int)))
 
 
-@eqx.filter_jit
+@filter_jit
 def _evaluate(objective: Objective, A):
     return objective(A)
 
@@ -240,7 +241,7 @@ def design_occluder(problem: DesignProblem, steps: int = 60, *, learning_rate: f
     schedule = np.concatenate([schedule, np.full(steps - anneal, t1)]).astype(np.float32)
     optimizer = optax.adam(learning_rate)
 
-    @eqx.filter_jit
+    @filter_jit
     def step(problem, theta, state, temperature):
         def log_loss(th):
             value = problem.loss(th, temperature)

@@ -6,6 +6,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._sampling import stratified_square
+from .._jit import filter_jit
 
 
 def _normalize(v):
@@ -130,7 +131,7 @@ class Camera(eqx.Module):
         return np.asarray(origin, np.float64), np.asarray(directions, np.float64).reshape(pixels.shape[:3] + (3,))
 
 
-@eqx.filter_jit
+@filter_jit
 def _rays(camera, pixels):
     return camera.origin, camera.ray_directions(pixels)
 

@@ -19,6 +19,7 @@ from ..scene import Camera, Scene
 from ._polish import polish_lights
 from ._search import check_outside, hard_fit, search_lights
 from ._shading import ShadowScene, light_images
+from .._jit import jit
 
 # Culling tolerance while fitting: a skipped triangle darkens a pixel by less than 1e-6.
 FIT_TOLERANCE = 1e-6
@@ -239,5 +240,5 @@ def _gd_impl(params, args, steps, lr, fit_ambient):
 
 # One compiled program per (method, ambient, steps per round): the temperature is an argument, so
 # the annealing rounds reuse it.
-_lm_round = {a: jax.jit(partial(_lm_impl, fit_ambient=a), static_argnums=2) for a in (False, True)}
-_gd_round = {a: jax.jit(partial(_gd_impl, fit_ambient=a), static_argnums=2) for a in (False, True)}
+_lm_round = {a: jit(partial(_lm_impl, fit_ambient=a), static_argnums=2) for a in (False, True)}
+_gd_round = {a: jit(partial(_gd_impl, fit_ambient=a), static_argnums=2) for a in (False, True)}

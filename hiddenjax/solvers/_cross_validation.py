@@ -17,6 +17,7 @@ from jaxtyping import Float, Int
 
 from ..transport import TransportMatrix
 from ._illumination import IlluminationOperator, Prior, _check_image, as_prior, gram_matrix
+from .._jit import filter_jit
 
 ERRORS = ("squared", "absolute", "relative", "log")
 
@@ -70,7 +71,7 @@ def block_folds(T: TransportMatrix, block: int = 8, folds: int = 4, seed: int = 
     return owner[(pixels // W) // block * per_row + (pixels % W) // block]
 
 
-@eqx.filter_jit
+@filter_jit
 def _solve_without(T, gram, held_out, prior, image, nonneg):
     """The map from the photo without the observed pixels `held_out (P,)`: their rows of `A` and of the
     photo are zero, which adds nothing to `A^T A`, `A^T y` or the weights' scale `mean(diag(A^T A))`,

@@ -19,6 +19,7 @@ from .._qp import (NOT_POSITIVE_DEFINITE, SUCCESS, DampedNewton, ProjectedNewton
                    _kkt_residual, _solve, check, checks_on_host)
 from ..transport import TransportMatrix, TransportOperator
 from ._sharded import row_mesh_of, sharded_column_energy, sharded_gram, sharded_matvec, sharded_rmatvec
+from .._jit import filter_jit, jit
 
 # Tuned on the teapot fixture (64x64 photo from the reference renderer) for tone-mapped SSIM:
 # within 0.03 of the best at both 16x32 and 32x64 grids. The linear metrics, dominated by the
@@ -339,7 +340,7 @@ def rmatvec(t, y):
     return sharded_rmatvec(t.A, y) if _sharded(t) else transpose_times(t.A, y)
 
 
-@partial(jax.jit, static_argnames=("block", "chunk"))
+@partial(jit, static_argnames=("block", "chunk"))
 def gram_matrix(A: Float[Array, "P N"], block: int = 256, chunk: int = 2048) -> Float[Array, "N N"]:
     """`A^T A` from the column blocks on and above the diagonal, skipping all-zero column blocks.
 
@@ -562,7 +563,7 @@ def _checked_operator(built, prior):
 
 # The whole-call programs: traced with their checks on the host (`checks_on_host`), so that the
 # persistent compilation cache keeps them; each returns what its caller checks.
-@eqx.filter_jit
+@filter_jit
 def _factorize_whole(Ts, data_gram, prior):
     """`build` (`data_gram=None`: the views' own `sum_v A_v^T A_v`) or `from_gram`, and whether the factor is finite."""
     with checks_on_host():
@@ -570,7 +571,7 @@ def _factorize_whole(Ts, data_gram, prior):
     return op, jnp.all(jnp.isfinite(op.factor))
 
 
-@eqx.filter_jit
+@filter_jit
 def _solve_whole(op, ys, nonneg, solver):
     with checks_on_host():
         solution = op._solve_rows(ys, nonneg, solver, throw=False)
@@ -597,18 +598,18 @@ def _solve_l2_stepwise(op, ys, nonneg, solver):
     return _l2_solution(op, c, state, ys, out, nonneg)
 
 
-@eqx.filter_jit
+@filter_jit
 def _l2_start(op, ys):
     return (sum(rmatvec(t, y) for t, y in zip(op.views, ys)),) + op.prior.parts(op)
 
 
-@eqx.filter_jit
+@filter_jit
 def _l2_after_solve(op, gram, c, k, x, state):
     with checks_on_host():
         return op.prior.after_solve(op, gram, c, k, x, state)
 
 
-@eqx.filter_jit
+@filter_jit
 def _l2_solution(op, c, state, ys, out, nonneg):
     B, factor, R, c_t, smooth = state
     solution = op._solution(*op.prior.solution(op, c, c_t, ys, R, out, smooth, nonneg))

@@ -50,6 +50,7 @@ from ._illumination import (
 )
 from ._scene_model import SceneModel
 from ._scene_params import SceneParams, SceneUncertainty
+from .._jit import filter_jit
 
 
 def model_average(source, thetas: SceneParams, weights=None, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, *,
@@ -189,7 +190,7 @@ def jacobian_gram(source, theta: SceneParams, uncertainty: SceneUncertainty, ste
     return _soft_jacobian_gram(source, theta, uncertainty.basis())
 
 
-@eqx.filter_jit
+@filter_jit
 def _soft_jacobian_gram(model: SceneModel, theta: SceneParams, basis):
     flat, unravel = ravel_pytree(theta)
 
@@ -391,7 +392,7 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     mean = SceneParams.zeros() if mean is None else mean
     theta = mean if theta is None else theta
     build = model.transport if transport is None else transport
-    step_fn = eqx.filter_jit(gauss_newton_step)
+    step_fn = filter_jit(gauss_newton_step)
 
     def fit(th):  # the solve at th: (operator, solution, A x, ||y - A x||^2, data + regularizer)
         op = IlluminationOperator.build(build(th), smooth, ridge)

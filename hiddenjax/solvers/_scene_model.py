@@ -29,6 +29,7 @@ from ..transport import TransportMatrix, transport_matrix
 from ..transport._build import _observed_pixels
 from ..transport._embree import RayCaster, primary_hits
 from ._scene_params import SceneParams, SceneUncertainty, rotation_matrix
+from .._jit import filter_jit
 
 DEFAULT_TEMPERATURE = 1000.0  # 1/m: soft edges ~4 mm wide, about one pixel of the 32x32 teapot fixture
 DEFAULT_TOLERANCE = 1e-4
@@ -125,7 +126,7 @@ class SceneModel(eqx.Module):
             raise ValueError(f"image shape {image.shape} does not match the model's image {self.soft.image_shape}")
         return image.reshape((-1,) + image.shape[2:])[self.pixels]
 
-    @eqx.filter_jit
+    @filter_jit
     def matrix(self, theta: SceneParams) -> Float[Array, "P N"]:
         """`A(theta) (P, N)`; differentiate with forward mode (`jax.jvp`, see `jacobian`). Jitted:
         eager calls compile once per model."""

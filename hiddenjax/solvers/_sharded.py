@@ -18,6 +18,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as Spec
 
 from ..transport._sharding import ROWS  # the mesh axis of A's pixel rows
+from .._jit import jit
 
 
 def row_mesh_of(A):
@@ -41,7 +42,7 @@ def _global(mesh, v, rows: bool):
     return jax.make_array_from_callback(v.shape, NamedSharding(mesh, spec), lambda index: v[index])
 
 
-@partial(jax.jit, static_argnums=0)
+@partial(jit, static_argnums=0)
 def _gram(mesh, A):
     local = lambda a: jax.lax.psum(jnp.einsum("pm,pn->mn", a, a), ROWS)
     return shard_map(local, mesh=mesh, in_specs=Spec(ROWS, None), out_specs=Spec())(A)
@@ -52,7 +53,7 @@ def sharded_gram(A) -> jax.Array:
     return _local(_gram(row_mesh_of(A), A))
 
 
-@partial(jax.jit, static_argnums=0)
+@partial(jit, static_argnums=0)
 def _energy(mesh, A):
     return shard_map(lambda a: jax.lax.psum(jnp.sum(a * a, axis=0), ROWS), mesh=mesh, in_specs=Spec(ROWS, None),
                      out_specs=Spec())(A)
@@ -63,7 +64,7 @@ def sharded_column_energy(A) -> jax.Array:
     return _local(_energy(row_mesh_of(A), A))
 
 
-@partial(jax.jit, static_argnums=0)
+@partial(jit, static_argnums=0)
 def _rmatvec(mesh, A, y):
     spec = Spec(ROWS, *([None] * (y.ndim - 1)))
     local = lambda a, v: jax.lax.psum(jnp.einsum("pn,p...->n...", a, v), ROWS)
@@ -76,7 +77,7 @@ def sharded_rmatvec(A, y) -> jax.Array:
     return _local(_rmatvec(mesh, A, _global(mesh, y, rows=True)))
 
 
-@partial(jax.jit, static_argnums=0)
+@partial(jit, static_argnums=0)
 def _matvec(mesh, A, x):
     spec = Spec(ROWS, *([None] * (x.ndim - 1)))
     return shard_map(lambda a, v: jnp.einsum("pn,n...->p...", a, v), mesh=mesh,

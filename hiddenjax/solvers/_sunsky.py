@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from .._jit import filter_jit
 from .._qp import ProjectedNewton, _cho_solve, solve_from
 from ._illumination import (
     DEFAULT_RIDGE,
@@ -198,7 +199,7 @@ def effective_samples(views, ys, x):
     return jnp.maximum(total, 2.0)
 
 
-@eqx.filter_jit
+@filter_jit
 def _sunsky(B, factor, R, lr, grid, c, yy, prior: SunSkyPrior, solver):
     """The alternating solve for columns `c (N, C)`, one stage per number of sources `0 .. max_sources`:
     `(sky, s, angles, active, rss, steps, result)`, each with a leading stage axis. `B = A^T A + R`

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jit import filter_jit
 from .._qp import MAX_STEPS, SUCCESS, _cho_solve
 from ._illumination import (
     DEFAULT_RIDGE,
@@ -148,7 +149,7 @@ def _stationarity(B, grid, c, lr, rho, w, u, nonneg):
     return jnp.max(jnp.abs(violation), 0) / jnp.maximum(jnp.max(jnp.abs(2 * c), 0), 1e-30)
 
 
-@eqx.filter_jit
+@filter_jit
 def _admm(B, factor, grid, c, lt, lr, rho, nonneg, prior: TVPrior):
     """Over-relaxed scaled ADMM for columns `c (N, K)` with TV weights `lt (K,)`: `(x, w, u, steps, result)`.
 

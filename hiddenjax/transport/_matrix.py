@@ -10,6 +10,7 @@ from jaxtyping import Array, Float, Int
 
 from ..io._files import atomic_path
 from ..scene import EnvGrid
+from .._jit import filter_jit
 
 
 class PixelRows:
@@ -166,7 +167,7 @@ def render(T: TransportMatrix, envmap) -> jax.Array:
     return _render(T, check_envmap(T.grid, envmap))
 
 
-@eqx.filter_jit
+@filter_jit
 def _render(T: TransportMatrix, x):
     """`render`'s product and scatter as one program (eagerly they were a dozen, each compiled)."""
     return T.rows_to_image(T.A @ jnp.asarray(x).astype(T.A.dtype))
