@@ -10,7 +10,7 @@ the cache, running), then the best of three further calls, then one more call un
 `jax.profiler.trace`, whose device events are summed by name: the kernels that take the time,
 how many were launched, and the host-device copies. Run it with `JAX_PLATFORMS=cuda,cpu` for the
 GPU and `JAX_PLATFORMS=cpu` for the CPU (`benchmarks/run_gpu.sh` runs both). Writes
-`results.json` and prints the tables.
+`results.json` and `profile.png` and prints the tables.
 """
 
 import argparse
@@ -73,7 +73,7 @@ def device_events(folder: Path, top: int = 12) -> dict:
                     continue
                 totals, counts = parts[part]
                 for event in line.events:
-                    if event.name.startswith(("ThreadpoolListener", "SlinkyThreadPool", "end: ")):
+                    if event.name.startswith(("ThreadpoolListener", "SlinkyThreadPool", "end: ", "ThunkExecutor")):  # containers
                         continue
                     totals[event.name] += event.duration_ns / 1e6
                     counts[event.name] += 1
@@ -120,6 +120,28 @@ def main(argv=None):
                 for kernel, ms, count in summary["top"]:
                     print(f"    {ms:9.3f} ms  x{count:<6d} {kernel}", flush=True)
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
+    _picture(args.out, results)
+
+
+def _picture(out: Path, results: dict) -> None:
+    """`profile.png`: per stage, the kernels (or CPU operations) that take the time, in milliseconds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    stages = results["stages"]
+    fig, axes = plt.subplots(1, len(stages), figsize=(6.5 * len(stages), 3.6))
+    for ax, (name, stage) in zip(np.atleast_1d(axes), stages.items()):
+        parts = next(iter(stage["devices"].values()), {})
+        top = parts.get("kernels", {}).get("top", [])[:8][::-1]
+        ax.barh([k[:40] for k, _, _ in top], [ms for _, ms, _ in top], color="tab:blue")
+        ax.set_xlabel("milliseconds in one compiled call")
+        ax.set_title(f"{name} on {results['platform']}: first call {stage['first_seconds']:.2f} s, "
+                     f"then {stage['run_seconds']:.3f} s", fontsize=9)
+        ax.tick_params(axis="y", labelsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "profile.png", dpi=110)
 
 
 if __name__ == "__main__":

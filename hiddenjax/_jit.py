@@ -19,6 +19,7 @@ import equinox as eqx
 import jax
 
 COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False}
+"""The compile options of hiddenjax's own programs: XLA's Triton GEMM tuning off on GPUs (ignored on CPUs)."""
 
 
 def jit(fun=None, **kwargs):
