@@ -224,7 +224,6 @@ def cues(args) -> dict:
         raise ValueError(f"output {out} exists and is not a folder")
     T = _load_matrix(args.matrix)
     image = _load_photo(args.image, T, args.srgb) if args.image else None
-    out.mkdir(parents=True, exist_ok=True)
     return _write_cues(out, T, image, args.ridge)[0]
 
 
@@ -241,6 +240,7 @@ def _write_cues(out: Path, T: TransportMatrix, image, ridge) -> tuple[dict, dict
         cook = np.asarray(linear.cooks_distance(grey))
         maps["cooks_distance"] = (np.where(mask, T.rows_to_image(cook), np.nan), 0.5)
     summary = {}
+    out.mkdir(parents=True, exist_ok=True)  # once every map is computed: a failure leaves no folder
     for name, (value, gamma) in maps.items():
         io.write_exr(out / f"{name}.exr", np.nan_to_num(value))
         io.write_map(out / f"{name}.png", value, gamma=gamma)

@@ -121,23 +121,34 @@ class TransportMatrix(PixelRows, eqx.Module):
 
     @classmethod
     def load(cls, path) -> "TransportMatrix":
-        """Read a matrix written by `save`."""
+        """Read a matrix written by `save`; a file that is not one (truncated, corrupted, another kind,
+        or arrays that do not fit together) is a `ValueError` naming it."""
+        bad = f"{path} is not a hiddenjax transport matrix (.npz from TransportMatrix.save)"
         try:
             with np.load(path) as data:
                 meta = json.loads(str(data["meta"]))
                 A, albedo, pixels = data["A"], data["albedo"], data["pixels"]
-        except (OSError, KeyError, ValueError) as e:
-            raise ValueError(f"{path} is not a hiddenjax transport matrix (.npz from TransportMatrix.save): {e}")
+            grid, image_shape = EnvGrid(*(int(v) for v in meta["grid"])), tuple(int(v) for v in meta["image_shape"])
+            fields = dict(samples=meta["samples"], pixel_samples=meta["pixel_samples"], bounces=meta["bounces"],
+                          seed=meta["seed"])
+        except Exception as e:  # whatever numpy, zipfile or json raise on a broken file
+            raise ValueError(f"{bad}: {type(e).__name__}: {e}") from None
+        P = A.shape[0] if A.ndim == 2 else -1
+        if (A.ndim != 2 or A.shape[1] != grid.size or albedo.shape != (P,) or pixels.shape != (P,)
+                or len(image_shape) != 2 or min(image_shape) < 1):
+            raise ValueError(f"{bad}: A {A.shape}, albedo {albedo.shape}, pixels {pixels.shape} do not fit a "
+                             f"{grid.height}x{grid.width} grid and a {image_shape} image")
+        if not (np.issubdtype(pixels.dtype, np.integer) and np.all((pixels >= 0) & (pixels < np.prod(image_shape)))):
+            raise ValueError(f"{bad}: its pixel indices fall outside the {image_shape[1]}x{image_shape[0]} image")
+        if not (np.issubdtype(A.dtype, np.floating) and np.all(np.isfinite(A)) and np.all(np.isfinite(albedo))):
+            raise ValueError(f"{bad}: A or the albedo holds non-finite or non-float values")
         return cls(
             A=jnp.asarray(A, dtype=jnp.float32),
             albedo=jnp.asarray(albedo, dtype=jnp.float32),
             pixels=jnp.asarray(pixels, dtype=jnp.int32),
-            grid=EnvGrid(*meta["grid"]),
-            image_shape=tuple(meta["image_shape"]),
-            samples=meta["samples"],
-            pixel_samples=meta["pixel_samples"],
-            bounces=meta["bounces"],
-            seed=meta["seed"],
+            grid=grid,
+            image_shape=image_shape,
+            **fields,
         )
 
 
