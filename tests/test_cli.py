@@ -332,3 +332,44 @@ def test_lights_on_a_textured_table_with_a_reference_photo(tmp_path, capsys):
         assert run(*extra) == 1
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and words in lines[0], lines
+
+
+def test_a_solve_that_stops_early_warns_in_the_library_s_words_and_keeps_the_map(built, capsys, monkeypatch):
+    """One rule: the sentence `throw=True` raises is the command's warning, and the map is written."""
+    import hiddenjax.cli as cli
+    import hiddenjax.solvers._illumination as illumination
+
+    short = lambda prior, *a: hj.solvers.TVPrior(max_steps=10) if prior == "tv" else original(prior, *a)
+    original = illumination.as_prior
+    monkeypatch.setattr(illumination, "as_prior", short)
+    monkeypatch.setattr(cli, "as_prior", short)
+    T = hj.TransportMatrix.load(built / "A.npz")
+    sky = hj.scenes.procedural_sky(32, 64)
+    hj.io.write_exr(built / "tv_photo.exr", np.asarray(hj.render(T, T.grid.downsample(sky))))
+    status = main(["solve", str(built / "A.npz"), str(built / "tv_photo.exr"), "-o", str(built / "tv_env.exr"),
+                   "--prior", "tv"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 0 and (built / "tv_env.exr").exists()
+    assert len(err) == 1 and err[0].startswith("hiddenjax solve: warning: the tv prior's solve stopped after 10 steps")
+    assert "TVPrior(max_steps=...)" in err[0]
+
+
+def test_ctrl_c_is_one_line_and_leaves_no_file(tmp_path):
+    """An interrupted build (SIGINT, as Ctrl-C sends) exits 130 with one line and leaves no output or temporary file."""
+    import signal
+
+    scene = SCENE.replace("width = 12\nheight = 10", "width = 320\nheight = 240").replace("samples = 4", "samples = 256")
+    (tmp_path / "scene.toml").write_text(scene + '[[surface]]\nmesh = "sphere"\nobserve = false\n'
+                                                 '[surface.transform]\nscale = [0.3, 0.3, 0.3]\n')
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    proc = subprocess.Popen([sys.executable, "-m", "hiddenjax", "transport", "scene.toml", "-o", "A.npz"],
+                            cwd=tmp_path, env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    seen = ""
+    while "transport matrix" not in seen and proc.poll() is None:
+        seen += proc.stderr.read(1)  # the progress bar: the build has started
+    proc.send_signal(signal.SIGINT)
+    stdout, rest = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "Traceback" not in seen + rest, seen + rest
+    assert (seen + rest).strip().splitlines()[-1].endswith("hiddenjax transport: interrupted"), seen + rest
+    assert "wrote" not in stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.toml"]

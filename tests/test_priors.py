@@ -349,3 +349,28 @@ def test_hdr_prior_refuses_a_signed_solve(small_setup):
     with pytest.raises(ValueError, match="needs x >= 0; solve a signed map with prior='l2'"):
         hj.solve_illumination(T, photo, prior="hdr", nonneg=False)
     assert hj.solve_illumination(T, photo, nonneg=False).smooth > 0  # the signed default is l2
+
+
+@pytest.fixture(scope="module")
+def low_sun_photo():
+    """The teapot (128x128, 32x64 grid) under a clear sky with a small sun 15 degrees high, path-traced
+    by the reference renderer: the ADMM of the TV prior stalled here with its former penalty (rho=10)."""
+    setup = hj.scenes.object_on_plane("teapot", width=128, height=128)
+    grid = hj.EnvGrid(32, 64)
+    T = hj.transport_matrix(setup.scene, setup.camera, grid, samples=16, pixel_samples=1, progress=False)
+    sky = hj.scenes.procedural_sky(256, 512, sun=(np.pi / 2 - np.radians(15), 2.0), sun_radiance=50000.0,
+                                   sun_radius_deg=0.5, sources=0)
+    return T, np.asarray(hj.reference_render(setup.scene, setup.camera, sky, samples=64, seed=1))
+
+
+def test_tv_converges_under_a_low_sun_and_says_so_when_it_cannot(low_sun_photo):
+    T, photo = low_sun_photo
+    sol = hj.solve_illumination(T, photo, prior="tv")  # throw=True: raises if it stops early
+    assert int(np.max(sol.result)) == 0 and float(np.max(sol.kkt_residual)) <= 3e-4
+    assert int(np.max(sol.steps)) < 3000
+    with pytest.raises(Exception, match=r"the tv prior's solve stopped after 20 steps at KKT residual .* raise "
+                                        r"TVPrior\(max_steps=\.\.\.\)") as raised:
+        hj.solve_illumination(T, photo, prior=TVPrior(max_steps=20))
+    assert "throw=False" in str(raised.value)
+    kept = hj.solve_illumination(T, photo, prior=TVPrior(max_steps=20), throw=False)
+    assert int(np.max(kept.result)) == 1 and np.all(np.isfinite(kept.env))

@@ -13,7 +13,10 @@ def load_mesh(mesh_or_path) -> trimesh.Trimesh:
         path = Path(mesh_or_path)
         if not path.is_file():
             raise ValueError(f"mesh file not found: {path}")
-        mesh = trimesh.load(path, force="mesh", process=False)
+        try:
+            mesh = trimesh.load(path, force="mesh", process=False)
+        except Exception as e:  # whatever the format's reader raises on a broken file
+            raise ValueError(f"{path} is not a readable mesh (OBJ, PLY, STL, GLB, ...): {type(e).__name__}: {e}") from None
     else:
         mesh = mesh_or_path
     if not isinstance(mesh, trimesh.Trimesh):
@@ -22,6 +25,9 @@ def load_mesh(mesh_or_path) -> trimesh.Trimesh:
         raise ValueError("mesh has no faces; an empty mesh can neither receive nor cast shadows")
     if not np.all(np.isfinite(mesh.vertices)):
         raise ValueError("mesh vertices contain non-finite values")
+    faces = np.asarray(mesh.faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= len(mesh.vertices):
+        raise ValueError(f"mesh faces {faces.shape} index vertices outside its {len(mesh.vertices)} vertices")
     return mesh
 
 

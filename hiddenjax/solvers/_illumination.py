@@ -32,6 +32,25 @@ MAX_STEPS_MESSAGE = ("solve_illumination: the solver ran out of max_steps before
                      "max_steps, or pass throw=False")
 
 
+def not_converged(prior, solution) -> str | None:
+    """The sentence for a solve that stopped before its tolerance, or None when every column converged.
+
+    One rule for the library and the command line: `solve(..., throw=True)` raises it, and
+    `hiddenjax solve` (which keeps the map) prints it as a warning. It names the prior, the KKT
+    residual reached and the option that gives the solver more room.
+    """
+    if not np.any(np.asarray(solution.result) != SUCCESS):
+        return None
+    kkt = float(np.max(np.asarray(solution.kkt_residual)))
+    steps = int(np.max(np.asarray(solution.steps)))
+    name = getattr(prior, "name", type(prior).__name__)
+    remedy = {"tv": "TVPrior(max_steps=...) (default 3000), or a smaller rho",
+              "sunsky": "SunSkyPrior's sky solve: solver=ProjectedNewton(max_steps=...)"}.get(
+        name, "solver=ProjectedNewton(max_steps=...) (default 100)")
+    return (f"the {name} prior's solve stopped after {steps} steps at KKT residual {kkt:.1e}, above its tolerance: "
+            f"the map is not optimal; raise {remedy}")
+
+
 class Prior(eqx.Module):
     """A prior on the environment map: its weights are its fields (relative: docs/conventions.md, "Regularization weights").
 
@@ -480,8 +499,9 @@ class IlluminationOperator(eqx.Module):
                 return eqx.tree_at(lambda s: s.env, solution, env)
             if not bool(finite):  # a reweighted normal matrix without a factor in this precision
                 raise eqx.EquinoxRuntimeError(NOT_POSITIVE_DEFINITE)
-            if throw and np.any(np.asarray(solution.result) != SUCCESS):
-                raise eqx.EquinoxRuntimeError(MAX_STEPS_MESSAGE)
+            message = not_converged(self.prior, solution) if throw else None
+            if message:
+                raise eqx.EquinoxRuntimeError(message + ", or pass throw=False to keep it")
             return solution
         return self._solve_rows([jnp.asarray(y) for y in ys], nonneg, solver, throw)
 

@@ -78,7 +78,10 @@ class TVPrior(Prior):
       least-squares constant map of each image column (`<A 1, y> / ||A 1||^2`), so one setting
       works across exposures, colours and scenes.
     - `ridge`: the `||x||^2` weight, relative as in `L2Prior`.
-    - `rho`: the ADMM penalty relative to `mean(diag(A^T A))`.
+    - `rho`: the ADMM penalty relative to `mean(diag(A^T A))`. The default 3 converged on all 48 photos
+      of the robustness study (teapot, sphere and coded aperture under the seven development
+      panoramas and nine clear skies with a sun 3-15 degrees high), in 1370-1620 steps at most and
+      ~500 on average; 10 stalled on a sun 8-15 degrees high (over 10000 steps), 1 on the panoramas.
     - `rtol`, `max_steps`: stop when the KKT residual `max |min(x, grad)| / max |2 A^T y|` and the
       relative splitting residual fall below `rtol` (`None`: 3e-4 in float32, where the residual of
       the teapot's photos levels off near 1e-4, and 1e-10 in float64).
@@ -87,7 +90,7 @@ class TVPrior(Prior):
     name: ClassVar[str] = "tv"
     weight: float = 0.1
     ridge: float = DEFAULT_RIDGE
-    rho: float = 10.0
+    rho: float = 3.0
     rtol: float | None = None
     max_steps: int = eqx.field(static=True, default=3000)
     relaxation: float = eqx.field(static=True, default=1.6)

@@ -107,6 +107,9 @@ def transport_matrix(
     )
 
 
+MAX_SAMPLES = 4096  # samples, pixel_samples, bounce_samples: 256x the defaults; more is a hang, not a build
+
+
 def _check_build_args(scene, camera, samples, pixel_samples, bounces=0, bounce_samples=1):
     if not isinstance(scene, Scene):
         raise ValueError(f"scene must be a hiddenjax Scene, got {type(scene).__name__}")
@@ -114,6 +117,10 @@ def _check_build_args(scene, camera, samples, pixel_samples, bounces=0, bounce_s
                              ("bounces", bounces, 0), ("bounce_samples", bounce_samples, 1)):
         if not isinstance(value, (int, np.integer)) or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        if value > MAX_SAMPLES and name != "bounces" or name == "bounces" and value > 8:
+            limit = 8 if name == "bounces" else MAX_SAMPLES
+            raise ValueError(f"{name}={value} is over its limit of {limit}: a build's time grows linearly with it "
+                             f"(defaults: samples=16, pixel_samples=4, bounces=0); use at most {limit}")
     if not np.all(np.isfinite(np.asarray(camera.rotation))) or not np.all(np.isfinite(np.asarray(camera.intrinsics))):
         raise ValueError("camera parameters contain non-finite values")
 
