@@ -23,26 +23,9 @@ from hypothesis import strategies as st
 
 import hiddenjax as hj
 from hiddenjax.cli import main
+from test_cli import SCENE as PLANE_SCENE
 
-SCENE = """
-[grid]
-height = 4
-width = 8
-[transport]
-samples = 4
-pixel_samples = 1
-[camera]
-width = 12
-height = 10
-origin = [0.0, 1.0, 1.0]
-target = [0.0, 0.0, 0.0]
-fov = 40.0
-[[surface]]
-mesh = "plane"
-albedo = 0.5
-[surface.transform]
-scale = [10.0, 1.0, 10.0]
-[[surface]]
+SCENE = PLANE_SCENE + """[[surface]]
 mesh = "box.ply"
 albedo = 0.7
 [surface.transform]

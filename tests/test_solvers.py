@@ -396,7 +396,7 @@ def test_chosen_weights_always_factor_in_float32():
 
 
 def test_accelerator_block_sizes_give_the_same_solution(x64, monkeypatch):
-    """On an accelerator the free block is padded to 1024 or N (2 compiled branches, not 20): same optimum."""
+    """On an accelerator the free block is padded to 1024 or N (2 compiled branches, not 20): the optimum, as scipy's."""
     from hiddenjax import _qp
 
     assert _qp._capacities(2048, "cpu")[:3] == [64, 128, 192] and len(_qp._capacities(2048, "cpu")) == 20
@@ -404,9 +404,9 @@ def test_accelerator_block_sizes_give_the_same_solution(x64, monkeypatch):
     rng = np.random.default_rng(0)
     A = np.abs(rng.normal(size=(1500, 1100))) * (rng.random((1500, 1100)) < 0.05)
     B = jnp.asarray(A.T @ A + 0.1 * np.eye(1100))
-    c = jnp.asarray(A.T @ (rng.normal(size=1500) + 0.3))
+    y = rng.normal(size=1500) + 0.3
+    c = jnp.asarray(A.T @ y)
     solve = lambda: jax.jit(lambda B, c: _qp._solve(B, _qp._cholesky(B), c, ProjectedNewton(), True))(B, c)
-    cpu = solve()
     original = _qp._capacities
     used = []
     monkeypatch.setattr(_qp, "_capacities", lambda n, backend=None: used.append(n) or original(n, "gpu"))
@@ -416,4 +416,7 @@ def test_accelerator_block_sizes_give_the_same_solution(x64, monkeypatch):
     x, grad = np.asarray(gpu[0]), np.asarray(gpu[1])
     assert 100 < np.sum(x > 0) < 1024  # the face is smaller than a block: the padding is exercised
     assert int(gpu[3]) == 0 and np.max(np.abs(np.minimum(x, grad))) <= 1e-9 * np.abs(np.asarray(c)).max()
-    np.testing.assert_allclose(x, np.asarray(cpu[0]), rtol=0, atol=1e-9 * np.abs(x).max())
+    # the same optimum as scipy's active-set NNLS of [A; sqrt(0.1) I] x = [y; 0]
+    ref = scipy.optimize.nnls(np.vstack([A, np.sqrt(0.1) * np.eye(1100)]), np.concatenate([y, np.zeros(1100)]),
+                              maxiter=20 * 1100)[0]
+    np.testing.assert_allclose(x, ref, rtol=0, atol=1e-8 * np.abs(ref).max())
