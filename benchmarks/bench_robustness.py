@@ -8,7 +8,9 @@ each development panorama (`data_fixtures/hdri/`, real, CC0), the photo comes fr
 reference renderer (never `A x`), times an exposure (1e-4, 1, 1e4), plus Gaussian noise of
 0, 1% or 5% of its mean. Every prior solves it with its defaults (`throw=False`, so a solve that
 stops early is counted, not raised): converged or not, steps, the KKT residual, seconds (compiled
-beforehand, once per object and prior) and the tone-mapped SSIM of the map against the panorama on the grid. Prints one row
+beforehand, once per object and prior) and the tone-mapped SSIM of the map against the panorama on the grid,
+over the whole sphere (the ground, which no photo constrains, included: lower than `bench_priors.py`'s
+upper-hemisphere scores). Prints one row
 per case, the failures, and a summary per prior; writes `results.json` and `robustness.png`.
 """
 
