@@ -71,7 +71,7 @@ def transport_matrix(
     of MB of temporaries per thread.
     """
     budget = parse_memory(max_bytes, "max_bytes")
-    _check_build_args(scene, camera, samples, pixel_samples, bounces, bounce_samples)
+    _check_build_args(scene, camera, samples, pixel_samples, bounces, bounce_samples, seed)
     threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
     guard(need_dense(camera, grid, pixel_samples, mask, threads), budget, "max_bytes",
           "use a smaller grid or fewer pixels (mask, a smaller image), or hj.transport_operator (matrix-free)")
@@ -110,7 +110,7 @@ def transport_matrix(
 MAX_SAMPLES = 4096  # samples, pixel_samples, bounce_samples: 256x the defaults; more is a hang, not a build
 
 
-def _check_build_args(scene, camera, samples, pixel_samples, bounces=0, bounce_samples=1):
+def _check_build_args(scene, camera, samples, pixel_samples, bounces=0, bounce_samples=1, seed=0):
     if not isinstance(scene, Scene):
         raise ValueError(f"scene must be a hiddenjax Scene, got {type(scene).__name__}")
     for name, value, low in (("samples", samples, 1), ("pixel_samples", pixel_samples, 1),
@@ -121,6 +121,8 @@ def _check_build_args(scene, camera, samples, pixel_samples, bounces=0, bounce_s
             limit = 8 if name == "bounces" else MAX_SAMPLES
             raise ValueError(f"{name}={value} is over its limit of {limit}: a build's time grows linearly with it "
                              f"(defaults: samples=16, pixel_samples=4, bounces=0); use at most {limit}")
+    if not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     if not np.all(np.isfinite(np.asarray(camera.rotation))) or not np.all(np.isfinite(np.asarray(camera.intrinsics))):
         raise ValueError("camera parameters contain non-finite values")
 

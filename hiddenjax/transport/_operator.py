@@ -282,7 +282,7 @@ def transport_operator(
     **Returns:** a `TransportOperator`.
     """
     budget = parse_memory(memory)
-    _check_build_args(scene, camera, samples, pixel_samples)
+    _check_build_args(scene, camera, samples, pixel_samples, seed=seed)
     threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
     guard(need_setup(camera, grid, pixel_samples, threads), budget, "memory",
           "use fewer pixels (a smaller image) or fewer pixel_samples, or a coarser grid")

@@ -89,7 +89,7 @@ def transport_matrix_sharded(
     **Returns:** a `TransportMatrix` whose `A` is a global array sharded by rows (`P` padded to a
     multiple of the device count with empty rows); `solve_illumination` and the cues reduce over it.
     """
-    _check_build_args(scene, camera, samples, pixel_samples)
+    _check_build_args(scene, camera, samples, pixel_samples, seed=seed)
     threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
     budget = parse_memory(max_bytes, "max_bytes")
     guard(need_setup(camera, grid, pixel_samples, threads), budget, "max_bytes", "use a coarser grid or fewer pixels")
