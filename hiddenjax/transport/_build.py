@@ -113,12 +113,11 @@ MAX_SAMPLES = 4096  # samples, pixel_samples, bounce_samples: 256x the defaults;
 def _check_build_args(scene, camera, samples, pixel_samples, bounces=0, bounce_samples=1, seed=0):
     if not isinstance(scene, Scene):
         raise ValueError(f"scene must be a hiddenjax Scene, got {type(scene).__name__}")
-    for name, value, low in (("samples", samples, 1), ("pixel_samples", pixel_samples, 1),
-                             ("bounces", bounces, 0), ("bounce_samples", bounce_samples, 1)):
+    for name, value, low, limit in (("samples", samples, 1, MAX_SAMPLES), ("pixel_samples", pixel_samples, 1, MAX_SAMPLES),
+                                    ("bounces", bounces, 0, 8), ("bounce_samples", bounce_samples, 1, MAX_SAMPLES)):
         if not isinstance(value, (int, np.integer)) or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-        if value > MAX_SAMPLES and name != "bounces" or name == "bounces" and value > 8:
-            limit = 8 if name == "bounces" else MAX_SAMPLES
+        if value > limit:
             raise ValueError(f"{name}={value} is over its limit of {limit}: a build's time grows linearly with it "
                              f"(defaults: samples=16, pixel_samples=4, bounces=0); use at most {limit}")
     if not isinstance(seed, (int, np.integer)) or seed < 0:
