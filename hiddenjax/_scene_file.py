@@ -285,3 +285,87 @@ def _mask(m: _Table, camera: Camera) -> np.ndarray:
     if mask.shape != (camera.height, camera.width):
         m.fail("image", f"is {mask.shape[1]}x{mask.shape[0]} pixels; the camera is {camera.width}x{camera.height}")
     return mask
+
+
+class CornerFile(NamedTuple):
+    """A corner file's `[corner]` table (docs/guide/around-the-corner.md): which shipped network reads the
+    frames and how, and optionally the corner's camera and geometry (metres, corner frame) for the refinement.
+
+    `camera` is `None` or `dict(origin, target, up, fov)` (a look-at camera; its image is the crop
+    square); `geometry` `None` or the measured lengths; `lamp` `None` or `(3,)`.
+    """
+
+    kind: str
+    setting: str
+    mirror: bool
+    crop: tuple | None
+    camera: dict | None
+    geometry: dict | None
+    lamp: np.ndarray | None
+    path: Path
+
+
+def load_corner(path, classes: tuple, settings: tuple) -> CornerFile:
+    """Read and check a corner file: a TOML file with one `[corner]` table.
+
+    ```toml
+    [corner]
+    class = "L"                   # one of `classes` (L, T, table)
+    setting = "fixed-lamp"        # the shipped network's lighting (fixed-lamp or random-lamp)
+    mirror = false                # true: the hidden corridor opens to the right of the frames
+    crop = [420, 0, 1080]         # optional: x0, y0, side of the square the network sees (default: central square)
+    lamp = [0.2, 0.65, 0.15]      # optional: the active lamp (metres); refinement default: the setting's
+    [corner.camera]               # optional: checked to see the corner's foot; needed by --refine
+    origin = [-0.1, 0.12, -0.5]   # metres, corner frame (origin: the occluding corner's foot; +x along
+    target = [-0.05, 0.0, 0.05]   # the hidden corridor, +y up)
+    up = [0.0, 1.0, 0.0]
+    fov = 60.0                    # degrees across the crop square
+    [corner.geometry]             # optional, needed by --refine (metres)
+    wall_height = 0.3
+    width_visible = 0.3
+    width_hidden = 0.3
+    length_visible = 0.6
+    length_hidden = 0.5
+    # depth = 0.5                 # T: how far the visible corridor runs past the corner
+    # table_size = [0.12, 0.07, 0.09]; table_leg = 0.01; table_top = 0.01; table_position = [-0.1, -0.1]  # table
+    ```
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"corner file not found: {path}")
+    top = _Table(read_toml(path), "", path)
+    c = top.table("corner")
+    if not c.data:
+        top.fail("corner", "is required: a [corner] table with at least class = ...")
+    kind = c.get("class", required=True)
+    if kind not in classes:
+        c.fail("class", f"must be one of {list(classes)}, got {kind!r}")
+    setting = c.get("setting", settings[0])
+    if setting not in settings:
+        c.fail("setting", f"must be one of {list(settings)}, got {setting!r}")
+    mirror = c.boolean("mirror", False)
+    crop = None
+    if c.has("crop"):
+        v = c.get("crop")
+        if not (isinstance(v, list) and len(v) == 3 and all(isinstance(a, int) and not isinstance(a, bool) for a in v)):
+            c.fail("crop", f"must be [x0, y0, side] in whole pixels, got {v!r}")
+        crop = tuple(v)
+    lamp = c.array("lamp", (3,)) if c.has("lamp") else None
+    camera = None
+    if c.has("camera"):
+        t = c.table("camera")
+        camera = dict(origin=t.array("origin", (3,)), target=t.array("target", (3,)),
+                      up=t.array("up", (3,), [0.0, 1.0, 0.0]), fov=t.number("fov", 60.0))
+        if not 1 <= camera["fov"] <= 170:
+            t.fail("fov", f"must be between 1 and 170 degrees, got {camera['fov']}")
+        t.done()
+    geometry = None
+    if c.has("geometry"):
+        g = c.table("geometry")
+        geometry = {}
+        for key, value in g.data.items():
+            shape = {"table_size": (3,), "table_position": (2,)}.get(key)
+            geometry[key] = g.array(key, shape).tolist() if shape else g.number(key)
+    c.done()
+    top.done()
+    return CornerFile(kind, setting, mirror, crop, camera, geometry, lamp, path)

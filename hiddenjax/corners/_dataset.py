@@ -9,6 +9,7 @@ whose configuration differs from the request is an error rather than silently re
 
 import json
 import os
+import time
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
@@ -55,7 +56,7 @@ def _render_many(args):
 
 def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, samples: int = 16,
                      negative: bool = False, lamp=None, emission: str = "lamp", workers: int | None = None, cache=None,
-                     progress: bool = True) -> CornerDataset:
+                     progress: bool = True, time_budget: float | None = None) -> CornerDataset:
     """Render `count` random `kind` scenes (`'L'`, `'T'`, `'table'`) in `workers` processes.
 
     **Arguments:**
@@ -68,11 +69,16 @@ def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, s
     - `emission`: `'lamp'` (the object reflects the lamp) or `'uniform'` (it glows alike all
       over, the thesis' Blender emitter; see `CornerScene`).
     - `cache`: an `.npz` path: loaded when it exists with the same configuration, written otherwise.
+    - `time_budget`: seconds; rendering stops once they are spent and the dataset is the scenes
+      finished by then, in seed order: the same images as `generate_dataset(count=len(result))`
+      (its `config["count"]` says how many). For filling a fixed time on a machine of unknown speed.
     """
     if kind not in SCENE_CLASSES:
         raise ValueError(f"unknown corner scene class {kind!r}; choose one of {SCENE_CLASSES}")
     if count < 1:
         raise ValueError(f"count must be >= 1, got {count}")
+    if time_budget is not None and not time_budget > 0:
+        raise ValueError(f"time_budget must be a positive number of seconds, got {time_budget}")
     config = dict(kind=kind, count=int(count), seed=int(seed), size=int(size), samples=int(samples),
                   negative=bool(negative))
     if lamp is not None:  # only then, so caches written before the option still match
@@ -93,9 +99,12 @@ def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, s
     jobs = [(kind, seeds[i:i + chunk], size, samples, negative, config.get("lamp"), emission)
             for i in range(0, count, chunk)]
     out = []
+    deadline = time.monotonic() + (time_budget if time_budget is not None else np.inf)
     with tqdm(total=count, desc=f"rendering {kind} scenes", unit="scene", disable=not progress) as bar:
         if workers == 1:
             for job in jobs:
+                if time.monotonic() > deadline:
+                    break
                 out += _render_many(job)
                 bar.update(len(job[1]))
         else:
@@ -104,6 +113,13 @@ def generate_dataset(kind: str, count: int, *, seed: int = 0, size: int = 128, s
                 for part in pool.map(_render_many, jobs):
                     out += part
                     bar.update(len(part))
+                    if time.monotonic() > deadline:
+                        pool.shutdown(wait=True, cancel_futures=True)
+                        break
+    if not out:
+        raise ValueError(f"time_budget={time_budget} s ended before the first scene was rendered; give more time")
+    if len(out) < count:
+        config["count"] = len(out)
     data = CornerDataset(np.stack([o[0] for o in out]), np.stack([o[1] for o in out]),
                          np.asarray([o[2] for o in out], np.float32), kind, config)
     if cache is not None:

@@ -144,14 +144,20 @@ def _table(rng, p) -> tuple[list, dict]:
     leg, top = rng.uniform(0.006, 0.015), rng.uniform(0.006, 0.015)
     cx = rng.uniform(-p["width_visible"] + size[0] / 2 + 0.01, -size[0] / 2 - 0.01)
     cz = rng.uniform(-0.25, -size[2] / 2 - 0.02)
+    tp = dict(table_size=size.tolist(), table_leg=leg, table_top=top, table_position=[cx, cz])
+    return [_table_mesh(tp)], tp
+
+
+def _table_mesh(tp: dict) -> trimesh.Trimesh:
+    """The table of `_table`'s parameters: `table_size` (width, height, depth), `table_leg`, `table_top`, `table_position` (x, z)."""
+    size, (cx, cz), leg, top = np.asarray(tp["table_size"]), tp["table_position"], tp["table_leg"], tp["table_top"]
     lo = np.array([cx - size[0] / 2, 0, cz - size[2] / 2])
     hi = np.array([cx + size[0] / 2, size[1], cz + size[2] / 2])
     meshes = [_box([lo[0], hi[1] - top, lo[2]], hi)]
     for x in (lo[0], hi[0] - leg):
         for z in (lo[2], hi[2] - leg):
             meshes.append(_box([x, 0, z], [x + leg, hi[1] - top, z + leg]))
-    return [trimesh.util.concatenate(meshes)], dict(table_size=size.tolist(), table_leg=leg, table_top=top,
-                                                   table_position=[cx, cz])
+    return trimesh.util.concatenate(meshes)
 
 
 def _clutter(rng, p, count) -> list:
@@ -255,3 +261,59 @@ def object_visible(scene: CornerScene) -> bool:
     """Does any camera pixel centre see the hidden object (first hit of the primary ray)?"""
     first = RayCaster(scene.with_object()).first_surface(*pixel_centre_rays(scene.camera))
     return bool(np.any(first == len(scene.meshes)))
+
+
+# The geometry of a measured corner (metres), by class: the keys of `random_corner_scene`'s params.
+GEOMETRY_KEYS = {
+    "L": ("wall_height", "width_visible", "width_hidden", "length_visible", "length_hidden"),
+    "T": ("wall_height", "width_visible", "width_hidden", "length_visible", "length_hidden", "depth"),
+    "table": ("wall_height", "width_visible", "width_hidden", "length_visible", "length_hidden", "table_size",
+              "table_leg", "table_top", "table_position"),
+}
+# The hidden object assumed where it is unknown: the middle of the training draws (radius 2.25-4 cm,
+# height 8-20 cm, albedo 0.3-0.95).
+TYPICAL_OBJECT = HiddenObject((0.0, 0.0), radius=0.03, height=0.14, albedo=0.7)
+
+
+def check_corner_camera(camera: Camera) -> None:
+    """A `ValueError` unless the camera stands above the floor and sees the corner's foot `(0, 0, 0)`.
+
+    The networks were trained on cameras in the visible corridor aimed near the corner's foot
+    (`random_corner_scene`); a camera that does not see it gives frames they cannot read.
+    """
+    origin = np.asarray(camera.origin, np.float64)
+    if not origin[1] > 0:
+        raise ValueError(f"the corner's camera is at height y = {origin[1]:.3g} m: it must stand above the floor (y > 0)")
+    (row, col), depth = (np.asarray(a, np.float64) for a in camera.project(np.zeros(3)))
+    if not (depth > 0 and 0 <= row < camera.height and 0 <= col < camera.width):
+        raise ValueError(f"the corner's camera (origin {np.round(origin, 3).tolist()}) does not see the floor at the "
+                         "corner's foot (0, 0, 0): aim its target near the corner, as in the training scenes")
+
+
+def corner_scene(kind: str, geometry: dict, camera: Camera, lamp, *, albedo: float = 0.5,
+                 hidden: HiddenObject = TYPICAL_OBJECT, emission: str = "lamp") -> CornerScene:
+    """The `CornerScene` of a measured corner: walls (and table) from `geometry`, uniform `albedo`, no clutter.
+
+    `geometry` holds `GEOMETRY_KEYS[kind]` in metres (`random_corner_scene`'s meanings); the
+    hidden object is `hidden` (by default `TYPICAL_OBJECT`), moved by the refinement.
+    """
+    if kind not in SCENE_CLASSES:
+        raise ValueError(f"unknown corner scene class {kind!r}; choose one of {SCENE_CLASSES}")
+    unknown = sorted(set(geometry) - set(GEOMETRY_KEYS[kind]))
+    if unknown:
+        raise ValueError(f"geometry key {unknown[0]!r} is not one of the {kind} corner's: {', '.join(GEOMETRY_KEYS[kind])}")
+    missing = [k for k in GEOMETRY_KEYS[kind] if k not in geometry]
+    if missing:
+        raise ValueError(f"the {kind} corner's geometry needs {', '.join(missing)} (metres)")
+    p = {k: geometry[k] for k in GEOMETRY_KEYS[kind]}
+    for k in ("wall_height", "width_visible", "width_hidden", "length_visible", "length_hidden"):
+        if not (np.isfinite(p[k]) and 0 < p[k] <= 10):
+            raise ValueError(f"geometry {k} must be a length in metres in (0, 10], got {p[k]!r}")
+    check_corner_camera(camera)
+    meshes = _walls(kind, p)
+    if kind == "table":
+        meshes.append(_table_mesh(p))
+    flat = (0, 0.0, (0.0, 0.0, 0.0), 0.0)
+    p.update(camera_origin=np.asarray(camera.origin).tolist(), fov=camera_fov(camera))
+    return CornerScene(kind, p, tuple(meshes), (float(albedo),) * len(meshes), (flat,) * len(meshes), camera,
+                       _check_lamp(lamp), 1.0, hidden, _check_emission(emission))

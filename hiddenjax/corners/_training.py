@@ -87,11 +87,25 @@ def train(model: CornerNet, images, positions, config: TrainConfig = TrainConfig
     if checkpoint is not None and Path(checkpoint).exists():
         model, state, start, losses, vals = load_checkpoint(checkpoint, model, state)
 
+    base_key = jax.random.key(config.seed)
+
     @filter_jit
-    def step(model, state, x, p, key):
-        loss, g = eqx.filter_value_and_grad(_batch_loss)(model, x, p, key, grid, config, True)
-        updates, state = optimizer.update(g, state, eqx.filter(model, eqx.is_array))
-        return eqx.apply_updates(model, updates), state, loss
+    def run(model, state, images, positions, idx, steps):
+        """`len(steps)` Adam steps in one compiled scan; `idx (K, batch)` the minibatches' rows."""
+        params, static = eqx.partition(model, eqx.is_array)
+
+        def one(carry, xs):
+            params, state = carry
+            rows, k = xs
+            model = eqx.combine(params, static)
+            key = jax.random.fold_in(base_key, k)
+            loss, g = eqx.filter_value_and_grad(_batch_loss)(model, images[rows], positions[rows], key, grid, config,
+                                                            True)
+            updates, state = optimizer.update(g, state, params)
+            return (eqx.apply_updates(params, updates), state), loss
+
+        (params, state), losses = jax.lax.scan(one, (params, state), (idx, steps))
+        return eqx.combine(params, static), state, losses
 
     evaluate = filter_jit(lambda m, x, p: _batch_loss(m, x, p, None, grid, config, False))
 
@@ -108,17 +122,25 @@ def train(model: CornerNet, images, positions, config: TrainConfig = TrainConfig
         if checkpoint is not None:
             save_checkpoint(checkpoint, model, state, at, losses, vals)
 
+    # The training set lives on the device once; each chunk of steps (up to the next checkpoint) is
+    # one call, with only its minibatch indices sent (a Python loop of single steps spent more time
+    # dispatching than computing on a GPU).
+    images_d, positions_d = jnp.asarray(images), jnp.asarray(positions)
+    every = max(1, config.checkpoint_every)
     with tqdm(total=config.steps, initial=start, desc="training", unit="step", disable=not progress) as bar:
-        for k in range(start, config.steps):
-            rng = np.random.default_rng([config.seed, k])
-            idx = rng.choice(len(images), config.batch, replace=False)
-            model, state, loss = step(model, state, jnp.asarray(images[idx]), jnp.asarray(positions[idx]),
-                                      jax.random.fold_in(jax.random.key(config.seed), k))
-            losses.append(float(loss))
-            bar.update(1)
+        k = start
+        while k < config.steps:
+            end = min(config.steps, (k // every + 1) * every)
+            idx = np.stack([np.random.default_rng([config.seed, j]).choice(len(images), config.batch, replace=False)
+                            for j in range(k, end)])
+            model, state, chunk = run(model, state, images_d, positions_d, jnp.asarray(idx, jnp.int32),
+                                      jnp.arange(k, end, dtype=jnp.uint32))
+            losses.extend(np.asarray(chunk, np.float64).tolist())
+            bar.update(end - k)
             bar.set_postfix(loss=f"{losses[-1]:.4f}")
-            if (k + 1) % config.checkpoint_every == 0 and k + 1 < config.steps:
-                save(k + 1)
+            k = end
+            if k % every == 0 and k < config.steps:
+                save(k)
     if start < config.steps or not vals:
         save(config.steps)
     if best[0] is not None and best[1] < vals[-1][1]:

@@ -5,6 +5,8 @@ The bottom layer of the package: it imports nothing else of hiddenjax.
 
 from ._exr import read_exr as read_exr
 from ._exr import write_exr as write_exr
+from ._images import HDR_SUFFIXES as HDR_SUFFIXES
+from ._images import LDR_SUFFIXES as LDR_SUFFIXES
 from ._images import colormap as colormap
 from ._images import read_hdr as read_hdr
 from ._images import read_image as read_image

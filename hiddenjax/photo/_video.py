@@ -29,26 +29,35 @@ class Video(NamedTuple):
 
 
 def read_video(path, width: int, height: int, every: int = 1, max_frames: int | None = None,
-               srgb: bool = True, grey: bool = False) -> Video:
+               srgb: bool = True, grey: bool = False, crop=None, progress=None) -> Video:
     """Frames of a video file (OpenCV's `VideoCapture`), area-averaged to `width x height`, as linear
-    radiance (`srgb=True` undoes the sRGB curve of ordinary video), every `every`-th up to `max_frames`."""
+    radiance (`srgb=True` undoes the sRGB curve of ordinary video), every `every`-th up to `max_frames`.
+
+    `crop(frame_height, frame_width) -> (x0, y0, side)` picks a square of each frame before the
+    averaging (e.g. `corners.square_crop`); `progress(frames_read)` is called every 100 frames.
+    """
     if every < 1 or (max_frames is not None and max_frames < 1):
         raise ValueError(f"every and max_frames must be >= 1, got {every}, {max_frames}")
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
         raise ValueError(f"cannot open the video {path}: check the path and that OpenCV's FFmpeg decodes its format "
                          f"(MP4/H.264, AVI/MJPG, ...)")
-    frames, indices, k = [], [], 0
+    frames, indices, k, box = [], [], 0, None
     try:
         while max_frames is None or len(frames) < max_frames:
             ok, bgr = capture.read()
             if not ok:
                 break
             if k % every == 0:
+                if crop is not None:
+                    box = box or crop(*bgr.shape[:2])
+                    bgr = bgr[box[1]:box[1] + box[2], box[0]:box[0] + box[2]]
                 rgb = cv2.resize(bgr[..., ::-1], (width, height), interpolation=cv2.INTER_AREA) / 255.0
                 rgb = srgb_to_linear(rgb) if srgb else rgb
                 frames.append((rgb.mean(axis=-1) if grey else rgb).astype(np.float32))
                 indices.append(k)
+                if progress is not None and len(frames) % 100 == 0:
+                    progress(len(frames))
             k += 1
         fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
     finally:
