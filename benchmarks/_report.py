@@ -2,14 +2,14 @@
 
 
 class Table(list):
-    """Rows of four strings; each row is printed when appended, the aligned table by `print_all`."""
+    """Rows of strings; each row is printed when appended, the aligned table by `print_all`."""
 
     def append(self, row):
         super().append(tuple(row))
         print("  ".join(row), flush=True)
 
     def print_all(self):
-        width = [max(len(r[i]) for r in self) for i in range(4)]
+        width = [max(len(r[i]) if i < len(r) else 0 for r in self) for i in range(max(map(len, self)))]
         print("\n" + "\n".join("  ".join(c.ljust(w) for c, w in zip(r, width)) for r in self))
 
 

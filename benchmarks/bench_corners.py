@@ -1,6 +1,13 @@
-"""Corner scenes: differential rendering vs. render-twice-and-subtract, dataset, training and refinement speed.
+"""Corner scenes: the shipped networks on fresh scenes; differential rendering vs. render-twice-and-subtract,
+dataset, training and refinement speed.
 
-    python benchmarks/bench_corners.py [--quick] [--out DIR]
+    python benchmarks/bench_corners.py [--quick] [--out DIR] [--fresh N] [--shipped-only]
+
+Shipped networks (`hj.corners.pretrained`, issue 57): each class and setting scored on `--fresh`
+scenes (default 1000) drawn from a seed range the training never used (`generate_dataset(seed=7)`:
+scene seeds from 7 000 021 on; the networks were trained on seed 0, scenes 0 to 47 999), as in the
+thesis' Table 3.1 (d, theta, rho: mean and spread), beside the thesis' numbers; and `track`'s
+throughput on 512 frames once compiled.
 
 Differential rendering (issue 6, thesis 3.2.1 reports ~15x): the exact one-bounce difference image
 by sampling the object and its shadow (`DifferentialRenderer.render(negative=True)`) against the
@@ -43,10 +50,16 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/bench_corners"))
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--fresh", type=int, default=None, help="fresh scenes per class and setting (default 1000)")
+    parser.add_argument("--shipped-only", action="store_true", help="only the shipped networks' evaluation")
     args = parser.parse_args(argv)
     hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     quick = args.quick
+    shipped = shipped_networks(args.fresh or (24 if quick else 1000))
+    (args.out / "shipped.json").write_text(json.dumps(shipped, indent=2))
+    if args.shipped_only:
+        return shipped
     size = 24 if quick else 64
     table = Table()
     table.append(("case", "time", "error / throughput", "ratio"))
@@ -134,6 +147,49 @@ def main(argv=None):
     results["refine_step_pathwise_s"] = (t2 - t1) / n
     table.print_all()
     (args.out / "results.json").write_text(json.dumps(results, indent=2))
+
+
+# Thesis Table 3.1, synthetic scenes: d (cm), theta (rad), rho (cm), mean and standard deviation.
+THESIS = {"L": ((3.33, 2.16), (-0.05, 0.08), (0.40, 3.13)), "T": ((2.07, 1.48), (-0.01, 0.06), (0.49, 2.26)),
+          "table": ((2.95, 1.82), (-0.04, 0.08), (0.95, 2.76))}
+TARGET_RANDOM_LAMP_CM = 4.0  # issue 57: every class in the randomized-lamp setting
+
+
+def shipped_networks(count: int) -> dict:
+    """Each shipped network on `count` fresh scenes of its class and setting; `track`'s throughput."""
+    table = Table()
+    table.append(("class", "setting", "d (cm)", "theta (rad)", "rho (cm)", "thesis d / theta / rho", "target d",
+                  "held out in training"))
+    out = dict(count=count, seed=FRESH_SEED, rows=[])
+    for setting in hc.SETTINGS:
+        for kind in hc.SCENE_CLASSES:
+            info = hc.pretrained_info(kind, setting)
+            model = hc.pretrained(kind, setting)
+            data = hc.generate_dataset(kind, count, seed=FRESH_SEED, size=info["architecture"]["size"],
+                                       samples=info["dataset"]["samples"], lamp=hc.setting_lamp(setting), workers=2,
+                                       progress=False)
+            e = hc.error_table(hc.localize(model, data.images).position, data.positions)
+            (td, ts), (tt, tts), (tr, trs) = THESIS[kind]
+            target = td if setting == "fixed-lamp" else TARGET_RANDOM_LAMP_CM
+            met = "met" if e["d"]["mean"] <= target else "missed"
+            table.append((kind, setting, f"**{e['d']['mean']:.2f}** ± {e['d']['std']:.2f}",
+                          f"{e['theta']['mean']:.3f} ± {e['theta']['std']:.3f}",
+                          f"{e['rho']['mean']:.2f} ± {e['rho']['std']:.2f}",
+                          f"{td} ± {ts} / {tt} ± {tts} / {tr} ± {trs}", f"<= {target} ({met})",
+                          f"{info['validation']['d']['mean']:.2f}"))
+            out["rows"].append(dict(kind=kind, setting=setting, errors=e, target_cm=target, met=met == "met",
+                                    held_out_d_cm=info["validation"]["d"]["mean"]))
+    # Throughput of track() once compiled: 512 differential frames of the last class.
+    frames = np.resize(data.images, (512,) + data.images.shape[1:])
+    hc.track(model, frames)
+    _, t = _timed(lambda: hc.track(model, frames), 3)
+    out["track_frames_per_second"] = 512 / t
+    table.append(("track()", "", f"{512 / t:.0f} frames/s", "512 frames, compiled, 2 cores", "", "", ">= 30", ""))
+    table.print_all()
+    return out
+
+
+FRESH_SEED = 7
 
 
 if __name__ == "__main__":

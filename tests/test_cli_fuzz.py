@@ -33,7 +33,17 @@ scale = [0.2, 0.2, 0.2]
 translation = [0.0, 0.1, 0.0]
 """
 
-EXAMPLES = {"default": 40, "slow": 320}  # per command: 7 commands, ~280 examples by default, >2000 in `slow`
+EXAMPLES = {"default": 40, "slow": 320}  # per command: 8 commands, 320 examples by default, 2560 in `slow`
+
+CORNER = """[corner]
+class = "L"
+setting = "fixed-lamp"
+mirror = false
+[corner.camera]
+origin = [-0.1, 0.12, -0.5]
+target = [-0.05, 0.0, 0.05]
+fov = 60.0
+"""
 
 
 @pytest.fixture(scope="module")
@@ -55,12 +65,19 @@ def base(tmp_path_factory):
     hj.io.write_image(d / "photo.png", np.clip(photo / photo.max(), 0, 1))
     hj.io.write_exr(d / "env.exr", np.ones((4, 8, 3), np.float32))
     np.save(d / "array.npy", photo)
+    (d / "corner.toml").write_text(CORNER)
+    rng = np.random.default_rng(0)
+    empty = rng.random((24, 32, 3)).astype(np.float32)
+    hj.io.write_exr(d / "f0.exr", empty)
+    lit = empty.copy()
+    lit[12:, :16] *= 1.1  # light from the hidden side, on the floor at the lower left
+    hj.io.write_exr(d / "f1.exr", lit)
     return d
 
 
 def _valid(base: Path, kind: str) -> bytes:
     return (base / {"exr": "photo.exr", "hdr": "photo.hdr", "png": "photo.png", "npz": "A.npz", "toml": "scene.toml",
-                    "ply": "box.ply", "board": "board.toml"}[kind]).read_bytes()
+                    "ply": "box.ply", "board": "board.toml", "corner": "corner.toml"}[kind]).read_bytes()
 
 
 @st.composite
@@ -286,8 +303,42 @@ def _commands(profile):
                                  "--square", str(square), "--marker", str(marker), "--dpi", str(dpi)],
                         ["b.png", "b.toml"])
 
+    @fuzz(profile)
+    @given(data=st.data())
+    def corner(base, data):
+        with workspace(base, "corner.toml", "f0.exr", "f1.exr") as folder:
+            frames = [str(folder / "f0.exr"), str(folder / "f1.exr")]
+            part = data.draw(st.sampled_from(["frame", "file", "options", "video"]))
+            options = ["--corner", str(folder / "corner.toml")]
+            if part == "frame":
+                suffix, content = data.draw(bad_image(shape=(24, 32, 3)))
+                _write_image(folder / ("bad" + suffix), content)
+                frames[data.draw(st.integers(0, 1))] = str(folder / ("bad" + suffix))
+            elif part == "file":
+                (folder / "corner.toml").write_bytes(data.draw(broken_bytes(base, "corner")))
+            elif part == "options":
+                numbers = st.sampled_from(["-1", "0", "1", "2", "3", "100000", "nan", "x"])
+                for flag in data.draw(st.lists(st.sampled_from(["--window", "--every", "--max-frames", "--crop",
+                                                                "--class", "--setting", "--background",
+                                                                "--refine"]), min_size=1, max_size=3, unique=True)):
+                    if flag == "--crop":
+                        options += [flag, *(data.draw(numbers) for _ in range(3))]
+                    elif flag in ("--class", "--setting"):
+                        options += [flag, data.draw(st.sampled_from(["L", "T", "table", "random-lamp", "Z"]))]
+                    elif flag == "--background":
+                        options += [flag, data.draw(st.sampled_from(["median", "first", "none.exr",
+                                                                     str(folder / "f0.exr")]))]
+                    elif flag == "--refine":
+                        options += [flag]
+                    else:
+                        options += [flag, data.draw(numbers)]
+            else:
+                (folder / "clip.mp4").write_bytes(data.draw(st.binary(max_size=4096)))
+                frames = [str(folder / "clip.mp4")]
+            run_command(folder, ["corner", *frames, "-o", str(folder / "out"), "--quiet", *options], ["out"])
+
     return dict(solve=solve, render=render, cues=cues, transport=transport, video=video, calibrate=calibrate,
-                board=board)
+                board=board, corner=corner)
 
 
 COMMANDS = _commands("default")
