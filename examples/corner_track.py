@@ -7,7 +7,7 @@ path-traced) plus the object's differential image at that frame's position
 (`DifferentialRenderer`, fresh random numbers per frame), written as linear EXR frames with a
 corner file and the empty corner's frame. `hiddenjax corner` reads the folder, subtracts the empty frame, writes the
 track; this script scores it against the true path (d per frame, as thesis Table 3.1) and draws
-both. Writes `frames/`, `empty.exr`, `corner.toml`, `track/track.json`, `track/track.png` and `corner_track.png`.
+both. Writes `frames/`, `empty.exr`, `corner.toml`, `track/track.json`, `track/track.png`, `corner_track.png` and `results.json`.
 
     python examples/corner_track.py [--kind L|T|table] [--setting fixed-lamp|random-lamp] [--frames N]
                                     [--window N] [--quick] [--out DIR]
@@ -30,11 +30,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 
-def walking_scene(kind, setting, frames, seed=10**9):
+def walking_scene(kind, setting, frames, size, seed=10**9):
     """A scene and `frames` positions on a straight walk (at least 15 cm) through its hidden corridor, all out of view."""
     rng = np.random.default_rng(seed)
     for k in range(100):
-        scene = hc.random_corner_scene(kind, seed + k, width=64, height=64, lamp=hc.setting_lamp(setting))
+        scene = hc.random_corner_scene(kind, seed + k, width=size, height=size, lamp=hc.setting_lamp(setting))
         p, r = scene.params, scene.hidden.radius
         end = rng.uniform([r + 0.01, r + 0.005], [p["length_hidden"] - r, p["width_hidden"] - r - 0.005])
         path = np.linspace(scene.hidden.position, end, frames)
@@ -61,7 +61,8 @@ def main(argv=None):
     (out / "frames").mkdir(parents=True, exist_ok=True)
     for old in (out / "frames").glob("*.exr"):
         old.unlink()
-    scene, path = walking_scene(args.kind, args.setting, n)
+    size = hc.pretrained_info(args.kind, args.setting)["architecture"]["size"]  # film at the network's resolution
+    scene, path = walking_scene(args.kind, args.setting, n, size)
     renderer = hc.DifferentialRenderer(scene)
     t0 = time.perf_counter()
     background = hc.render_full(scene, with_object=False, samples=64, seed=1)
@@ -85,7 +86,7 @@ def main(argv=None):
     summary = dict(kind=args.kind, setting=args.setting, frames=n, window=args.window, render_s=t_render,
                    frames_per_second=result["frames_per_second"], errors=table,
                    per_frame_cm=(np.linalg.norm(est - truth, axis=1) * 100).tolist())
-    hj.io.write_text(out / "summary.json", json.dumps(summary, indent=2))
+    hj.io.write_text(out / "results.json", json.dumps(summary, indent=2))
     plot(out / "corner_track.png", scene, path, est, summary)
     print(f"{args.kind} ({args.setting}), {n} frames: d = {table['d']['mean']:.2f} +- {table['d']['std']:.2f} cm "
           f"(median {table['median_d']:.2f}), located at {result['frames_per_second']:.0f} frames/s")

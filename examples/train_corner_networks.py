@@ -2,9 +2,9 @@
 
 For each setting (`fixed-lamp`: the thesis' rig, one lamp fixed in the corner's frame;
 `random-lamp`: the lamp drawn per scene) and class (L, T, table): render `--count` random scenes
-(`generate_dataset`, 64x64, 16 samples/px, seed 0), hold out the last 10%, train `CornerNet` for
-`--steps` steps at batch 64 (AdamW 3e-3 on a cosine, noise augmentation, the thesis' 30k steps by
-default) scoring the held-out scenes every `--validate-every` steps and keeping the best, then
+(`generate_dataset`, 128x128 averaged 2x2 by the network, or `--size 64`; 16 samples/px, seed 0),
+hold out the last 10%, train `CornerNet` for `--steps` steps at batch 64 (AdamW 3e-3 on a cosine,
+noise augmentation) scoring the held-out scenes every `--validate-every` steps and keeping the best, then
 write the network and its manifest entry (`hj.corners.save_pretrained`: architecture, data and
 training configuration, validation errors, learning curve, SHA-256) to `--out`.
 
@@ -14,7 +14,7 @@ dataset's rendering at S seconds (the dataset is then the scenes finished, in se
 manifest records how many: `--count <that>` reproduces it without the cap).
 
     python examples/train_corner_networks.py [--settings fixed-lamp random-lamp] [--kinds L T table]
-        [--count 48000] [--steps 30000] [--render-budget S] [--workers N] [--out DIR] [--quick]
+        [--count 16000] [--steps 3000] [--size 128] [--render-budget S] [--workers N] [--out DIR] [--quick]
 
 The shipped files came from this command (the manifest has each one's exact configuration); copy
 `--out`'s `*.eqx` and `manifest.json` into `hiddenjax/corners/weights/` to ship new ones.
@@ -38,18 +38,22 @@ import hiddenjax.corners as hc
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-SIZE = 64  # rendered frame side: twice the scenes per second of 128x128 at the same error (experiments page)
 RENDER_SAMPLES = 16
-ARCHITECTURE = dict(size=SIZE, grid=(32, 32), channels=(16, 32, 32), hidden=128, pool=1, power=0.5)
+
+
+def architecture(size: int) -> dict:
+    """The network for `size`-pixel frames: 128x128 frames are averaged 2x2 first (4x the samples per input pixel)."""
+    return dict(size=size, grid=(32, 32), channels=(16, 32, 32), hidden=128, pool=2 if size == 128 else 1, power=0.5)
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--settings", nargs="+", default=list(hc.SETTINGS), choices=hc.SETTINGS)
     parser.add_argument("--kinds", nargs="+", default=list(hc.SCENE_CLASSES), choices=hc.SCENE_CLASSES)
-    parser.add_argument("--count", type=int, default=48000, help="rendered scenes per network (10%% held out)")
-    parser.add_argument("--steps", type=int, default=30000)
-    parser.add_argument("--validate-every", type=int, default=1000)
+    parser.add_argument("--count", type=int, default=16000, help="rendered scenes per network (10%% held out)")
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--size", type=int, default=128, choices=(64, 128), help="rendered frame side (default 128)")
+    parser.add_argument("--validate-every", type=int, default=250)
     parser.add_argument("--render-budget", type=float, default=None, help="seconds of rendering per dataset at most")
     parser.add_argument("--workers", type=int, default=None, help="rendering processes (default: all cores but one)")
     parser.add_argument("--out", type=Path, default=Path("out/corner_networks"))
@@ -57,7 +61,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     hj.enable_compilation_cache()
     if args.quick:
-        args.count, args.steps, args.validate_every = min(args.count, 160), min(args.steps, 40), 20
+        args.count, args.steps, args.validate_every, args.size = min(args.count, 160), min(args.steps, 40), 20, 64
     args.out.mkdir(parents=True, exist_ok=True)
     workers = args.workers or max(1, (os.cpu_count() or 2) - 1)
     device = jax.devices()[0]
@@ -71,7 +75,7 @@ def main(argv=None):
         for setting, kind in jobs:
             t0 = time.perf_counter()
             try:
-                data = hc.generate_dataset(kind, args.count, seed=0, size=SIZE, samples=RENDER_SAMPLES,
+                data = hc.generate_dataset(kind, args.count, seed=0, size=args.size, samples=RENDER_SAMPLES,
                                            lamp=hc.setting_lamp(setting), workers=workers, progress=False,
                                            time_budget=args.render_budget)
             except Exception as error:  # handed to the trainer, which re-raises it
@@ -91,7 +95,7 @@ def main(argv=None):
         entry, curve = train_one(data, setting, kind, args, t_render, str(device.device_kind))
         summary["networks"][f"{kind}_{setting}"] = entry
         curves[f"{kind} {setting}"] = curve
-        hj.io.write_text(args.out / "summary.json", json.dumps(summary, indent=1, default=float))
+        hj.io.write_text(args.out / "results.json", json.dumps(summary, indent=1, default=float))
     plot_curves(args.out / "learning_curves.png", curves)
     return summary
 
@@ -99,7 +103,7 @@ def main(argv=None):
 def train_one(data, setting, kind, args, t_render, device_kind):
     train, val = data.split(0.1)
     config = hc.TrainConfig(steps=args.steps, batch=64, checkpoint_every=args.validate_every)
-    model = hc.CornerNet(jax.random.key(0), **ARCHITECTURE)
+    model = hc.CornerNet(jax.random.key(0), **architecture(args.size))
     t0 = time.perf_counter()
     model, log = hc.train(model, train.images, train.positions, config, validation=(val.images, val.positions),
                           progress=False)
@@ -113,7 +117,7 @@ def train_one(data, setting, kind, args, t_render, device_kind):
                   training=config.__dict__, best_step=best_step, validation=table, train_split=train_table,
                   validation_loss=curve, render_s=round(t_render, 1), train_s=round(t_train, 1),
                   device=device_kind, package_version=hj.__version__, jax_version=jax.__version__)
-    entry = hc.save_pretrained(args.out, model, kind, setting, ARCHITECTURE, record)
+    entry = hc.save_pretrained(args.out, model, kind, setting, architecture(args.size), record)
     print(f"{setting} {kind}: d = {table['d']['mean']:.2f} +- {table['d']['std']:.2f} cm on {table['count']} held-out "
           f"scenes (train split {train_table['d']['mean']:.2f}); best step {best_step}; training {t_train:.0f} s",
           flush=True)

@@ -16,6 +16,8 @@ import hiddenjax as hj
 import hiddenjax.corners as hc
 from hiddenjax.cli import main
 
+SIZE = hc.pretrained_info("L", "fixed-lamp")["architecture"]["size"]  # the shipped networks' frame side
+
 
 @pytest.mark.parametrize("setting", hc.SETTINGS)
 @pytest.mark.parametrize("kind", hc.SCENE_CLASSES)
@@ -35,7 +37,7 @@ def test_shipped_network_locates_fresh_scenes_far_better_than_guessing():
     """48 fresh L scenes (a seed range the training never used): the error is near the benchmark's 3.4 cm,
     and far below always answering the training positions' mean (about 11 cm)."""
     model = hc.pretrained("L", "fixed-lamp")
-    data = hc.generate_dataset("L", 48, seed=11, size=64, samples=16, lamp=hc.FIXED_LAMP, workers=1, progress=False)
+    data = hc.generate_dataset("L", 48, seed=11, size=SIZE, samples=16, lamp=hc.FIXED_LAMP, workers=1, progress=False)
     d = hc.error_table(hc.localize(model, data.images).position, data.positions)["d"]["mean"]
     guess = hc.error_table(np.broadcast_to(data.positions.mean(0), data.positions.shape), data.positions)
     assert d < 5.0 and d < 0.5 * guess["d"]["mean"], (d, guess["d"]["mean"])
@@ -77,7 +79,7 @@ def test_network_frames_crop_average_and_mirror():
 
 def test_window_means_and_batching_do_not_change_the_track():
     model = hc.pretrained("T", "fixed-lamp")
-    data = hc.generate_dataset("T", 5, seed=12, size=64, samples=8, lamp=hc.FIXED_LAMP, workers=1, progress=False)
+    data = hc.generate_dataset("T", 5, seed=12, size=SIZE, samples=8, lamp=hc.FIXED_LAMP, workers=1, progress=False)
     one = hc.track(model, data.images, batch=64)
     small = hc.track(model, data.images, batch=2)  # three batches, the last padded
     np.testing.assert_allclose(one.position, small.position, atol=1e-5)
@@ -136,7 +138,7 @@ def test_a_time_budget_keeps_a_seed_order_prefix_of_the_dataset():
 def walk(tmp_path_factory):
     """An empty corner frame and 6 frames of an object walking in its hidden corridor (fresh seed), as EXR."""
     d = tmp_path_factory.mktemp("corner")
-    scene = hc.random_corner_scene("L", 10**9 + 9, width=64, height=64, lamp=hc.FIXED_LAMP)
+    scene = hc.random_corner_scene("L", 10**9 + 9, width=SIZE, height=SIZE, lamp=hc.FIXED_LAMP)
     path = np.linspace(scene.hidden.position, (scene.params["length_hidden"] / 2, scene.params["width_hidden"] / 2), 6)
     assert not any(hc.object_visible(dataclasses.replace(scene, hidden=scene.hidden.moved(q))) for q in path)
     empty = hc.render_full(scene, with_object=False, samples=32, seed=1)
@@ -187,17 +189,17 @@ def test_corner_command_reads_a_video_and_mirrored_frames(walk, tmp_path):
     frames = [hj.io.read_image(d / "frames" / f"f{k}.exr") for k in range(6)]
     empty = hj.io.read_image(d / "empty.exr")
     scale = 0.8 / max(f.max() for f in frames)
-    writer = cv2.VideoWriter(str(tmp_path / "clip.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (128, 96))
+    writer = cv2.VideoWriter(str(tmp_path / "clip.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (SIZE + 64, SIZE + 32))
     for f in [empty] * 3 + frames:
-        wide = np.zeros((96, 128), np.float32)
-        wide[16:80, 32:96] = f[:, ::-1] * scale  # mirrored, in the middle of a wider frame
+        wide = np.zeros((SIZE + 32, SIZE + 64), np.float32)
+        wide[16:16 + SIZE, 32:32 + SIZE] = f[:, ::-1] * scale  # mirrored, in a wider frame
         writer.write(np.repeat((np.clip(wide, 0, 1) * 255).astype(np.uint8)[..., None], 3, -1))
     writer.release()
     status, _, err = _run(["corner", str(tmp_path / "clip.avi"), "-o", str(tmp_path / "v"), "--class", "L", "--linear",
-                           "--mirror", "--crop", "32", "16", "64", "--background", "first", "--quiet"])
+                           "--mirror", "--crop", "32", "16", str(SIZE), "--background", "first", "--quiet"])
     assert status == 0, err
     result = json.loads((tmp_path / "v" / "track.json").read_text())
-    assert result["crop"] == [32, 16, 64] and result["mirror"] and len(result["estimates"]) == 8
+    assert result["crop"] == [32, 16, SIZE] and result["mirror"] and len(result["estimates"]) == 8
     est = np.array([[e["x"], e["z"]] for e in result["estimates"][2:]])  # after the two empty frames
     # 8-bit MJPEG frames: coarser than the EXR frames, still on the walk
     assert np.mean(np.linalg.norm(est - path, axis=1)) < 0.1
@@ -226,7 +228,7 @@ def test_corner_command_refines_with_a_measured_corner(walk, tmp_path):
     ("one frame", "1 frame(s): a difference needs 2 or more"),
     ("same frames", "do not differ from the background"),
     ("bad class", "class must be one of"),
-    ("crop outside", "is not a square of at least 8 pixels inside the 64x64 frames"),
+    ("crop outside", f"is not a square of at least 8 pixels inside the {SIZE}x{SIZE} frames"),
     ("window", "--window 3 is longer than the 1 differential frame(s)"),
 ])
 def test_corner_command_bad_input_is_one_line_and_no_output(walk, tmp_path, case, words):
@@ -234,7 +236,7 @@ def test_corner_command_bad_input_is_one_line_and_no_output(walk, tmp_path, case
     frames = [str(d / "empty.exr"), str(d / "frames" / "f1.exr")]
     options = ["--class", "L"]
     if case == "sizes":
-        hj.io.write_exr(tmp_path / "small.exr", np.ones((32, 32), np.float32))
+        hj.io.write_exr(tmp_path / "small.exr", np.ones((SIZE // 2, SIZE // 2), np.float32))
         frames[1] = str(tmp_path / "small.exr")
     elif case == "no class":
         options = []
@@ -252,7 +254,7 @@ def test_corner_command_bad_input_is_one_line_and_no_output(walk, tmp_path, case
         (tmp_path / "c.toml").write_text('[corner]\nclass = "Y"\n')
         options = ["--corner", str(tmp_path / "c.toml")]
     elif case == "crop outside":
-        options += ["--crop", "40", "0", "32"]
+        options += ["--crop", str(SIZE // 2 + 8), "0", str(SIZE // 2)]
     elif case == "window":
         options += ["--window", "3"]
     status, out, err = _run(["corner", *frames, "-o", str(tmp_path / "out"), "--linear", "--quiet", *options])

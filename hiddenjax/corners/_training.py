@@ -104,7 +104,11 @@ def train(model: CornerNet, images, positions, config: TrainConfig = TrainConfig
             updates, state = optimizer.update(g, state, params)
             return (eqx.apply_updates(params, updates), state), loss
 
-        (params, state), losses = jax.lax.scan(one, (params, state), (idx, steps))
+        if len(steps) == 1:  # no scan at all: on XLA's CPU backend even a one-step scan ran 17x slower
+            (params, state), loss = one((params, state), (idx[0], steps[0]))
+            losses = loss[None]
+        else:
+            (params, state), losses = jax.lax.scan(one, (params, state), (idx, steps))
         return eqx.combine(params, static), state, losses
 
     evaluate = filter_jit(lambda m, x, p: _batch_loss(m, x, p, None, grid, config, False))
@@ -122,25 +126,30 @@ def train(model: CornerNet, images, positions, config: TrainConfig = TrainConfig
         if checkpoint is not None:
             save_checkpoint(checkpoint, model, state, at, losses, vals)
 
-    # The training set lives on the device once; each chunk of steps (up to the next checkpoint) is
-    # one call, with only its minibatch indices sent (a Python loop of single steps spent more time
-    # dispatching than computing on a GPU).
+    # The training set lives on the device once and only minibatch indices are sent. On an
+    # accelerator the steps up to the next checkpoint are one call (a scan: one step per call spent
+    # more time dispatching than computing on an H100); on the CPU one step per call, without a scan
+    # (measured on 2 cores, 128x128 input pooled 2x, batch 64: 30 ms a step, 520 ms inside a scan).
     images_d, positions_d = jnp.asarray(images), jnp.asarray(positions)
     every = max(1, config.checkpoint_every)
+    per_call = 1 if jax.default_backend() == "cpu" else every
     with tqdm(total=config.steps, initial=start, desc="training", unit="step", disable=not progress) as bar:
-        k = start
+        k, pending = start, []
         while k < config.steps:
-            end = min(config.steps, (k // every + 1) * every)
+            end = min(config.steps, (k // every + 1) * every, k + per_call)
             idx = np.stack([np.random.default_rng([config.seed, j]).choice(len(images), config.batch, replace=False)
                             for j in range(k, end)])
             model, state, chunk = run(model, state, images_d, positions_d, jnp.asarray(idx, jnp.int32),
                                       jnp.arange(k, end, dtype=jnp.uint32))
-            losses.extend(np.asarray(chunk, np.float64).tolist())
-            bar.update(end - k)
-            bar.set_postfix(loss=f"{losses[-1]:.4f}")
+            pending.append(chunk)  # read back at checkpoints: no wait on the device every step
             k = end
-            if k % every == 0 and k < config.steps:
-                save(k)
+            if k % every == 0 or k == config.steps:
+                losses.extend(np.concatenate([np.asarray(c, np.float64) for c in pending]).tolist())
+                pending = []
+                bar.update(k - bar.n)
+                bar.set_postfix(loss=f"{losses[-1]:.4f}")
+                if k % every == 0 and k < config.steps:
+                    save(k)
     if start < config.steps or not vals:
         save(config.steps)
     if best[0] is not None and best[1] < vals[-1][1]:
