@@ -363,7 +363,7 @@ def load_corner(path, classes: tuple, settings: tuple) -> CornerFile:
     if c.has("geometry"):
         g = c.table("geometry")
         geometry = {}
-        for key, value in g.data.items():
+        for key in g.data:
             shape = {"table_size": (3,), "table_position": (2,)}.get(key)
             geometry[key] = g.array(key, shape).tolist() if shape else g.number(key)
     c.done()

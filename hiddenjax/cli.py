@@ -673,8 +673,6 @@ def corner(args) -> dict:
         raise ValueError(f"--window must be >= 1, got {args.window}")
     frames, indices, fps, shape = _corner_frames(args.inputs, size, crop, args.every, args.max_frames, args.linear,
                                                  args.quiet)
-    if crop is not None:
-        _corners.square_crop(*shape, crop)  # a crop outside the frames is an error before anything is written
     if mirror:
         frames = frames[:, :, ::-1]
     if not np.all(np.isfinite(frames)):

@@ -81,7 +81,7 @@ def pretrained(kind: str, setting: str = "fixed-lamp", *, folder=None) -> Corner
     """The shipped `CornerNet` for scene class `kind` (`'L'`, `'T'`, `'table'`) and lighting `setting`.
 
     Its input is a background-subtracted frame of `pretrained_info(...)["architecture"]["size"]`
-    pixels a side (`localize_frames` resamples other sizes). The file's SHA-256 is checked
+    pixels a side (`network_frames` resamples other sizes). The file's SHA-256 is checked
     against the manifest; a mismatch is an error, not a silently different network.
     """
     entry = pretrained_info(kind, setting, folder=folder)

@@ -139,8 +139,9 @@ def train(model: CornerNet, images, positions, config: TrainConfig = TrainConfig
             end = min(config.steps, (k // every + 1) * every, k + per_call)
             idx = np.stack([np.random.default_rng([config.seed, j]).choice(len(images), config.batch, replace=False)
                             for j in range(k, end)])
-            model, state, chunk = run(model, state, images_d, positions_d, jnp.asarray(idx, jnp.int32),
-                                      jnp.arange(k, end, dtype=jnp.uint32))
+            # numpy arguments: no eager JAX op (and its own compiled program) per call
+            model, state, chunk = run(model, state, images_d, positions_d, idx.astype(np.int32),
+                                      np.arange(k, end, dtype=np.uint32))
             pending.append(chunk)  # read back at checkpoints: no wait on the device every step
             k = end
             if k % every == 0 or k == config.steps:
