@@ -18,6 +18,7 @@ OUT=${1:-out/gpu}
 QUICK=${2:-}
 PY=${PYTHON:-python3}
 BUDGET=${RUN_GPU_BUDGET_S:-480}
+STEPS=${RUN_GPU_STEPS:-}
 mkdir -p "$OUT"
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 START=$(date +%s)
@@ -25,6 +26,9 @@ START=$(date +%s)
 step() {  # step PLATFORM NAME LIMIT_S COMMAND...: seconds and exit status into OUT/PLATFORM/NAME/status.json
   local platform=$1 name=$2 limit=$3
   shift 3
+  if [[ -n "$STEPS" && ",$STEPS," != *",$name,"* ]]; then
+    return
+  fi
   local left=$(( BUDGET - ($(date +%s) - START) ))
   if (( left < 20 )); then
     echo "$platform $name: skipped (the budget of $BUDGET s is spent)"
@@ -52,7 +56,8 @@ for platform in cuda,cpu cpu; do
   step "$platform" bench_cues 90 "$PY" benchmarks/bench_cues.py
   step "$platform" bench_video 60 "$PY" benchmarks/bench_video.py
 done
-step cuda,cpu bench_scale 120 "$PY" benchmarks/bench_scale.py --grids 32x64,64x128 --skip layouts
+step cuda,cpu bench_scale "${RUN_GPU_SCALE_LIMIT_S:-120}" "$PY" benchmarks/bench_scale.py \
+  --grids "${RUN_GPU_SCALE_GRIDS:-32x64,64x128}" --skip "${RUN_GPU_SCALE_SKIP:-layouts}"
 for platform in cuda,cpu cpu; do
   step "$platform" bench_shadows 90 "$PY" benchmarks/bench_shadows.py --quick
   step "$platform" bench_solvers 120 "$PY" benchmarks/bench_solvers.py

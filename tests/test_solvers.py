@@ -396,10 +396,10 @@ def test_chosen_weights_always_factor_in_float32():
 
 
 def test_accelerator_block_sizes_give_the_same_solution(x64, monkeypatch):
-    """On an accelerator the free block is padded to 1024 or N (2 compiled branches, not 20): the optimum, as scipy's."""
+    """On an accelerator the free block is padded to 1024 or N (2 compiled branches, not 12): the optimum, as scipy's."""
     from hiddenjax import _qp
 
-    assert _qp._capacities(2048, "cpu")[:3] == [64, 128, 192] and len(_qp._capacities(2048, "cpu")) == 20
+    assert _qp._capacities(2048, "cpu")[:3] == [128, 256, 384] and len(_qp._capacities(2048, "cpu")) == 12
     assert _qp._capacities(2048, "gpu") == [1024, 2048] and _qp._capacities(700, "gpu") == [700]
     rng = np.random.default_rng(0)
     A = np.abs(rng.normal(size=(1500, 1100))) * (rng.random((1500, 1100)) < 0.05)
