@@ -45,3 +45,19 @@ class TestBenchmarks:
     @pytest.mark.parametrize("script", scripts("benchmarks"))
     def test_script_runs_quick(self, script, tmp_path):
         run_quick(script, tmp_path)
+
+
+@pytest.mark.slow
+def test_run_gpu_runs_the_steps_named_and_writes_both_platforms(tmp_path):
+    """`RUN_GPU_STEPS` picks the steps of `benchmarks/run_gpu.sh`; each platform's run lands in OUT/gpu.json.
+
+    Without a GPU the `cuda,cpu` run fails (its status says so) and the CPU platform's runs."""
+    env = dict(os.environ, RUN_GPU_STEPS="bench_video", PYTHON=sys.executable, RUN_GPU_BUDGET_S="300")
+    proc = subprocess.run(["bash", str(ROOT / "benchmarks" / "run_gpu.sh"), str(tmp_path), "--quick"], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    table = json.loads((tmp_path / "gpu.json").read_text())
+    assert set(table) == {"bench_video"}, table.keys()  # the demo and the other steps did not run
+    cpu = table["bench_video"]["cpu"]
+    assert cpu["rc"] == 0 and cpu["results"], cpu
+    assert "cuda,cpu" in table["bench_video"]

@@ -76,6 +76,17 @@ def solve_albedo_illumination(
       changes by less than `tol` (relative).
 
     **Returns:** an `AlbedoIlluminationSolution`; starts, as the thesis does, from ones.
+
+    The alternation is stopped after `max_steps`, not run to the joint minimum: with one object's
+    shading the joint problem is nearly ambiguous (a per-pixel albedo can take up part of a
+    shadow that the map should explain), and its minimum is a worse map than the early iterates.
+    On the teapot (64x64, 16x32 grid, the forest_slope panorama and the same turned by 90
+    degrees), the first map's tone-mapped SSIM was 0.54 after 10 exact alternations
+    (`gamma=1`) and 0.37 after 40, while the objective kept falling (its relative change per
+    step 1.5e-2 at step 10, 6e-4 at step 40); with the defaults, 200 steps lowered the objective
+    6% below the 20-step one and the SSIM from 0.48 to 0.27. A larger `albedo_weight` (1e-2 to 1)
+    did not stop the drift (0.50 to 0.23 after 10 steps, 0.30 to 0.24 after 40). `tol` stops
+    earlier, never later.
     """
     Ts = views(T)
     stacks = (images,) if len(Ts) == 1 else tuple(images)
