@@ -191,7 +191,7 @@ def _newton_cg(hessian, c, precondition, x, settings: "MatrixFree"):
                 break
             a = np.where(accepted, a, a / 2)
         change = np.max(np.abs(new - x), axis=0) / np.maximum(np.max(np.abs(new), axis=0), 1e-300)
-        x, Bx = new, hessian(new)
+        x, Bx = new, hessian(new)  # a fresh product, not Bx + Bs: the KKT test must not read accumulated rounding
         products += 1
         kkt = np.max(np.abs(np.minimum(x, Bx - c)), axis=0) / cmax
     return x, settings.max_steps, products, kkt
