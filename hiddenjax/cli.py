@@ -48,7 +48,8 @@ from . import metrics
 from . import photo as _photo
 from . import shadows as _shadows
 from .scene import Camera, EnvGrid, Scene, fixture, object_on_plane, procedural_sky, rotate_azimuth
-from .solvers._illumination import not_converged
+from .solvers._illumination import not_converged, views
+from .solvers._solve import fits_normal_matrix
 from .solvers import (DEFAULT_PRIOR, DEFAULT_RIDGE, DEFAULT_SMOOTH, IlluminationOperator, L2Prior, as_prior,
                       regularization_weights, relative_smooth, solve_illumination)
 from ._compilation_cache import enable_compilation_cache
@@ -170,7 +171,8 @@ def solve(args) -> dict:
         io.write_map(png, env if env.ndim == 2 else env.mean(axis=-1), signed=True)
     elif png:
         io.write_png(png, env)
-    message = not_converged(as_prior(prior), solution)
+    message = not_converged(as_prior(prior), solution, matrix_free=isinstance(T, TransportOperator)
+                            and not fits_normal_matrix(views(T)))
     if message:  # the library's throw=True error, as a warning: the map is written
         warnings.warn(message, UserWarning, stacklevel=1)
     print(f"wrote {out}: {T.grid.height}x{T.grid.width} env map ({prior_name}), {seconds:.2f} s, "

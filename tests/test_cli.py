@@ -354,6 +354,25 @@ def test_a_solve_that_stops_early_warns_in_the_library_s_words_and_keeps_the_map
     assert "TVPrior(max_steps=...)" in err[0]
 
 
+def test_a_matrix_free_solve_that_stops_early_names_its_own_budget(built, capsys, monkeypatch):
+    """A scene file whose normal matrix exceeds --memory is solved matrix-free: its warning names MatrixFree, not ProjectedNewton."""
+    import functools
+
+    import hiddenjax.solvers._solve as _solve
+
+    short = functools.partial(_solve.solve_matrix_free, settings=hj.solvers.MatrixFree(max_steps=1, rtol=1e-9, coarse=0))
+    monkeypatch.setattr(_solve, "solve_matrix_free", short)
+    hj.io.write_exr(built / "sky_mf.exr", np.full((16, 32, 3), 2.0, np.float32))
+    assert main(["render", str(built / "A.npz"), str(built / "sky_mf.exr"), "-o", str(built / "photo_mf.exr")]) == 0
+    capsys.readouterr()
+    status = main(["solve", str(built / "scene.toml"), str(built / "photo_mf.exr"), "-o", str(built / "mf.exr"),
+                   "--grid", "32", "128", "--memory", "160MiB", "-q"])  # 16 N^2 = 256 MiB > 160 MiB: matrix-free
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 0 and (built / "mf.exr").exists(), err
+    assert len(err) == 1 and "stopped after" in err[0] and "MatrixFree(max_steps=...)" in err[0], err
+    assert "ProjectedNewton" not in err[0]
+
+
 def test_ctrl_c_is_one_line_and_leaves_no_file(tmp_path):
     """An interrupted build (SIGINT, as Ctrl-C sends) exits 130 with one line and leaves no output or temporary file."""
     import signal

@@ -395,11 +395,31 @@ def test_chosen_weights_always_factor_in_float32():
         assert np.all(np.isfinite(np.asarray(sol.env)))
 
 
+def test_bordered_factorization_is_the_factor_of_the_matrix(x64):
+    """An order that is a multiple of 256 is factorized bordered by identity rows: the same lower factor, upper part zero."""
+    from hiddenjax import _qp
+
+    rng = np.random.default_rng(1)
+    for n in (256, 512, 300):
+        M = rng.normal(size=(n + 40, n))
+        B = jnp.asarray(M.T @ M / n + np.diag(rng.uniform(0.1, 100.0, n)))  # badly scaled rows, as an env map's
+        L = np.asarray(_qp.equilibrated_cholesky(B))
+        assert L.shape == (n, n) and np.all(np.triu(L, 1) == 0)
+        np.testing.assert_allclose(L, np.linalg.cholesky(np.asarray(B)), rtol=1e-10, atol=1e-12)
+    assert _qp._lapack_order(512, "cpu") == 520 and _qp._lapack_order(300, "cpu") == 300
+    assert _qp._lapack_order(512, "gpu") == 512 and _qp._lapack_order(128, "cpu") == 128
+
+
 def test_accelerator_block_sizes_give_the_same_solution(x64, monkeypatch):
     """On an accelerator the free block is padded to 1024 or N (2 compiled branches, not 12): the optimum, as scipy's."""
     from hiddenjax import _qp
 
-    assert _qp._capacities(2048, "cpu")[:3] == [128, 256, 384] and len(_qp._capacities(2048, "cpu")) == 12
+    # on the CPU the multiples of 256 are bordered to 8 more (LAPACK is 2-3x slower at those orders)
+    assert _qp._capacities(2048, "cpu")[:3] == [128, 264, 384] and _qp._capacities(2048, "cpu")[-1] == 2056
+    assert len(_qp._capacities(2048, "cpu")) == 12 and _qp._capacities(700, "cpu")[-1] == 700
+    for n in (100, 256, 515, 520, 2049, 5000):  # increasing, the last holds every free set
+        sizes = _qp._capacities(n, "cpu")
+        assert sizes == sorted(set(sizes)) and n <= sizes[-1] <= n + 8
     assert _qp._capacities(2048, "gpu") == [1024, 2048] and _qp._capacities(700, "gpu") == [700]
     rng = np.random.default_rng(0)
     A = np.abs(rng.normal(size=(1500, 1100))) * (rng.random((1500, 1100)) < 0.05)

@@ -26,6 +26,7 @@ from ..solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, gram_matrix, prior_matrix, 
 from ..solvers._illumination import _check_image, _check_weights, _traced_weights, fold_rows, transpose_times
 from ..transport import TransportMatrix, TransportOperator
 from .._jit import filter_jit
+from .._qp import cholesky
 
 _CHUNK = 2048  # pixels per block of `A L^-T`: 2048 x N floats (16 MiB at N = 2048)
 SINGULAR = "A^T A + R is singular (a direction no pixel sees, and zero weights): use ridge > 0"
@@ -242,7 +243,7 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int):
     gram = gram_matrix(A, chunk=chunk)
     eps = jnp.finfo(A.dtype).eps
     shift = jnp.sqrt(eps) * jnp.mean(jnp.diag(gram))
-    factor = jnp.linalg.cholesky(gram + prior_matrix(grid, 0.0 if ls is None else ls, lr + shift, A.dtype))
+    factor = cholesky(gram + prior_matrix(grid, 0.0 if ls is None else ls, lr + shift, A.dtype))
     del gram
 
     def refine(Linv):
@@ -257,7 +258,7 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int):
             return C + Q.T @ Q
 
         C = fold_rows(A, add_block, prior, chunk)
-        return jax.scipy.linalg.solve_triangular(jnp.linalg.cholesky(C), Linv, lower=True)
+        return jax.scipy.linalg.solve_triangular(cholesky(C), Linv, lower=True)
 
     Linv = jax.scipy.linalg.solve_triangular(factor, eye, lower=True)
     for _ in range(passes):  # not lax.cond: a traced choice made XLA copy A (2x A more memory)

@@ -32,12 +32,13 @@ MAX_STEPS_MESSAGE = ("solve_illumination: the solver ran out of max_steps before
                      "max_steps, or pass throw=False")
 
 
-def not_converged(prior, solution) -> str | None:
+def not_converged(prior, solution, matrix_free: bool = False) -> str | None:
     """The sentence for a solve that stopped before its tolerance, or None when every column converged.
 
     One rule for the library and the command line: `solve(..., throw=True)` raises it, and
     `hiddenjax solve` (which keeps the map) prints it as a warning. It names the prior, the KKT
-    residual reached and the option that gives the solver more room.
+    residual reached and the option that gives the solver more room (`matrix_free`: the solve was
+    `solve_matrix_free`'s, whose budget is `MatrixFree`).
     """
     if not np.any(np.asarray(solution.result) != SUCCESS):
         return None
@@ -47,6 +48,8 @@ def not_converged(prior, solution) -> str | None:
     remedy = {"tv": "TVPrior(max_steps=...) (default 3000), or a smaller rho",
               "sunsky": "SunSkyPrior's sky solve: solver=ProjectedNewton(max_steps=...)"}.get(
         name, "solver=ProjectedNewton(max_steps=...) (default 100)")
+    if matrix_free:
+        remedy = "solve_matrix_free(..., settings=MatrixFree(max_steps=...)) (default 50), or a coarser grid"
     return (f"the {name} prior's solve stopped after {steps} steps at KKT residual {kkt:.1e}, above its tolerance: "
             f"the map is not optimal; raise {remedy}")
 
