@@ -12,7 +12,7 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from ._jit import filter_jit
+from ._jit import filter_jit, jit
 
 NOT_POSITIVE_DEFINITE = (
     "A^T A + smooth D^T D + ridge I is not positive definite in this precision: the weights are too small "
@@ -143,6 +143,7 @@ def _cholesky(B):
     return check(factor, ~jnp.all(jnp.isfinite(factor)), NOT_POSITIVE_DEFINITE)
 
 
+@jit
 def equilibrated_cholesky(B):
     """A lower Cholesky factor `L` of `B` (`B = L L^T`) by way of the unit-diagonal `S^-1 B S^-1`, `S = diag(B)^1/2`.
 
@@ -155,6 +156,7 @@ def equilibrated_cholesky(B):
     return cholesky(B / d[:, None] / d[None, :]) * d[:, None]
 
 
+@jit
 def cholesky(B):
     """The lower Cholesky factor of `B` from its lower triangle (LAPACK's `potrf`; NaN where it fails).
 

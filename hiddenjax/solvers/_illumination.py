@@ -400,8 +400,9 @@ def fold_rows(A, fn, init, chunk: int = 2048):
     return fn(acc, full * c, A[full * c :]) if full * c < P else acc
 
 
+@partial(jit, static_argnames=("grid", "dtype"))
 def prior_matrix(grid, smooth, ridge, dtype=jnp.float32) -> Float[Array, "N N"]:
-    """`R = smooth D^T D + ridge I` with absolute weights, `(N, N)`."""
+    """`R = smooth D^T D + ridge I` with absolute weights, `(N, N)` (one program per grid and dtype)."""
     eye = jnp.eye(grid.size, dtype=dtype)
     return smooth * jax.vmap(grid.difference_gram)(eye) + ridge * eye  # rows of D^T D (symmetric)
 
