@@ -46,8 +46,16 @@ def error_table(predicted, truth) -> dict:
 
 
 def location_saliency(model: CornerNet, image, grid: PolarGrid = PolarGrid()) -> jax.Array:
-    """`|d position / d image|` `(H, W)`: which pixels move the located (x, z) (thesis 6.1, eq. via `cues.saliency`)."""
-    image = jnp.asarray(image, jnp.float32)
+    """`|d position / d image|` `(H, W)`: which pixels move the located (x, z) (thesis 6.1, eq. via `cues.saliency`).
+
+    One compiled program (the network's forward and backward passes; run eagerly, each of their
+    operations compiled a program of its own, about 300).
+    """
+    return _location_saliency(model, jnp.asarray(image, jnp.float32), grid)
+
+
+@filter_jit
+def _location_saliency(model, image, grid):
     where = lambda y, k: locate(predict_heatmap(model, y), grid)[0][k]
     gx, gz = (saliency(lambda y: where(y, k), image) for k in (0, 1))
     return jnp.sqrt(gx**2 + gz**2)
