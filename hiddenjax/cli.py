@@ -239,14 +239,16 @@ def _write_cues(out: Path, T: TransportMatrix, image, ridge) -> tuple[dict, dict
     """Write the cue maps (EXR values, PNG pictures); `(summary, maps)`, NaN outside the mask."""
     mask = np.asarray(T.mask)
     linear = _cues.LinearCues.build(T, ridge=ridge)
+    if image is None:
+        leverage, cook = linear.leverage(), None
+    else:  # Cook's distance of the grey photo, and the leverage, from one pass over A
+        leverage, cook = linear.influence(image.mean(axis=-1) if image.ndim == 3 else image)
     maps = {
-        "leverage": (np.where(mask, T.rows_to_image(np.asarray(linear.leverage())), np.nan), 1.0),
+        "leverage": (np.where(mask, T.rows_to_image(np.asarray(leverage)), np.nan), 1.0),
         "uncertainty": (np.asarray(linear.uncertainty()), 1.0),
     }
-    if image is not None:
-        grey = image.mean(axis=-1) if image.ndim == 3 else image  # Cook's distance of the grey photo
-        cook = np.asarray(linear.cooks_distance(grey))
-        maps["cooks_distance"] = (np.where(mask, T.rows_to_image(cook), np.nan), 0.5)
+    if cook is not None:
+        maps["cooks_distance"] = (np.where(mask, T.rows_to_image(np.asarray(cook)), np.nan), 0.5)
     summary = {}
     out.mkdir(parents=True, exist_ok=True)  # once every map is computed: a failure leaves no folder
     for name, (value, gamma) in maps.items():

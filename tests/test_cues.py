@@ -148,6 +148,10 @@ def test_cooks_distance_matches_leave_one_out_regularized(scene_T, smooth):
         A, _, R = _dense(scene_T, cues)
         brute = _brute_cooks(A, np.asarray(scene_T.image_to_rows(image)), R)
         np.testing.assert_allclose(cooks, brute, rtol=1e-6, atol=1e-12 * brute.max())
+        # one pass for both: the leverage and Cook's distance of `influence` are the separate calls'
+        h, d = cues.influence(image, chunk=300)
+        np.testing.assert_allclose(np.asarray(d), cooks, rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(h), np.asarray(cues.leverage(chunk=300)), rtol=1e-12)
 
 
 def test_uncertainty_is_the_covariance_diagonal(scene_T):

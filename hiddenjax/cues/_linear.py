@@ -151,13 +151,17 @@ class LinearCues(eqx.Module):
         residuals, `p = trace(H)` the effective number of parameters (`N` for `R = 0`) and
         `s^2 = e^T e / (P - p)`. RGB images: pass one channel (or the grey mean).
         """
+        return self.influence(image, chunk)[1]
+
+    def influence(self, image, chunk: int = _CHUNK) -> tuple[Float[Array, " P"], Float[Array, " P"]]:
+        """`(leverage(), cooks_distance(image))` from one pass over `A` (both need `L^-1 a_i^T` of every pixel)."""
         y = _check_image(self.T, image).astype(self.T.A.dtype)
         if y.ndim != 1:
             raise ValueError(f"cooks_distance takes one channel, got an image with {y.shape[1]}; "
                              "pass image[..., c] or image.mean(-1)")
-        return _cooks_distance(self, y, chunk)
+        return _influence(self, y, chunk)
 
-    def _cooks_distance(self, y, chunk):
+    def _influence(self, y, chunk):
         A, Linv, grid = self.T.A, self.inverse_factor, self.T.grid
         e = y - A @ self._estimate_rows(y)
 
@@ -170,7 +174,7 @@ class LinearCues(eqx.Module):
         h, prior = self._blocks(terms, chunk).T
         p = jnp.sum(h)
         s2 = jnp.sum(e * e) / (A.shape[0] - p)
-        return jnp.square(e) * (h - prior) / (jnp.square(1 - h) * p * s2)
+        return h, jnp.square(e) * (h - prior) / (jnp.square(1 - h) * p * s2)
 
     def gain_images(self, pixels) -> Float[Array, "K H W"]:
         """Estimation gain images (eq. 5.9): rows of `G = B^-1 A^T` as camera images `(K, H, W)`.
@@ -225,8 +229,8 @@ def _estimate(cues, y):
 
 
 @filter_jit
-def _cooks_distance(cues, y, chunk):
-    return cues._cooks_distance(y, chunk)
+def _influence(cues, y, chunk):
+    return cues._influence(y, chunk)
 
 
 def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int):
