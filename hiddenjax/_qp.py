@@ -251,13 +251,20 @@ def _free_set(x, grad, tol):
 
 @jax.custom_batching.custom_vmap
 def _newton_step(B, c, x, grad, free, lipschitz):
-    """One projected Newton step `(x, grad) -> (x_new, B x_new - c)` on the face of `free` (`x` is zero off it)."""
+    """One projected Newton step `(x, grad) -> (x_new, B x_new - c)` on the face of `free` (`x` is zero off it).
+
+    The Newton point and its full step (`t = 1`, taken by most steps) come from the free block,
+    gathered into the next of some fixed sizes (`_face_newton`, one `lax.switch` branch per size);
+    a step it does not decrease backtracks on the whole of `B` (`_backtrack`), compiled once
+    rather than in every branch (the loop was 60% of a branch's compile).
+    """
     capacities = _capacities(B.shape[0])
     count = jnp.sum(free)
     sel = jnp.nonzero(free, size=capacities[-1], fill_value=0)[0]  # once, not in every branch
     size = jnp.searchsorted(jnp.asarray(capacities), count)
-    return jax.lax.switch(size, [partial(_face_step, capacity=k) for k in capacities], B, c, x, grad, sel, count,
-                          lipschitz)
+    z, x1, grad1, change1 = jax.lax.switch(size, [partial(_face_newton, capacity=k) for k in capacities], B, c, x,
+                                           grad, sel, count)
+    return _accept_or_backtrack(B, c, x, grad, free, lipschitz, z, x1, grad1, change1)
 
 
 @_newton_step.def_vmap
@@ -268,10 +275,41 @@ def _newton_step_vmap(axis_size, in_batched, B, c, x, grad, free, lipschitz):
 
     def step(B, c, x, grad, free, lipschitz):
         sel = jnp.nonzero(free, size=capacity, fill_value=0)[0]
-        return _face_step(B, c, x, grad, sel, jnp.sum(free), lipschitz, capacity)
+        out = _face_newton(B, c, x, grad, sel, jnp.sum(free), capacity)
+        return _accept_or_backtrack(B, c, x, grad, free, lipschitz, *out)
 
     in_axes = [0 if b else None for b in in_batched]
     return jax.vmap(step, in_axes=in_axes)(B, c, x, grad, free, lipschitz), (True, True)
+
+
+def _accept_or_backtrack(B, c, x, grad, free, lipschitz, z, x1, grad1, change1):
+    """`(x1, grad1)` if the full step decreased the objective (`change1 < 0`), else `_backtrack`'s step."""
+    return jax.lax.cond(change1 < 0, lambda: (x1, grad1),
+                        lambda: _backtrack(B, c, x, grad, free, lipschitz, z, x1, change1))
+
+
+def _backtrack(B, c, x, grad, free, lipschitz, z, x1, change1):
+    """Projected backtracking from a rejected full step: the largest `t` in `{1/2, 1/4, ...}` (40 halvings)
+    with `f(P(x + t (z - x))) < f(x)`, on the exact change `d^T (B d + 2 grad)` (float32 cannot resolve a
+    difference of two values of `f` near the optimum), or, should the Newton path not descend (degenerate
+    cases), a projected gradient step of length `1/L` (`L >= ` the largest eigenvalue of `B`), which does
+    unless `x` is optimal. All of it on the face: `x`, `z` and every trial point are zero off `free`.
+    """
+    change = lambda xt: (xt - x) @ (jnp.einsum("mn,n->m", B, xt - x) + 2 * grad)
+
+    def ls_cond(s):
+        t, xt, dt, i = s
+        return (dt >= 0) & (i < 40)
+
+    def ls_body(s):
+        t, _, _, i = s
+        t = t * 0.5
+        xt = jnp.maximum(x + t * (z - x), 0.0)
+        return t, xt, change(xt), i + 1
+
+    _, xt, dt, _ = jax.lax.while_loop(ls_cond, ls_body, (jnp.asarray(1.0, x.dtype), x1, change1, 0))
+    new = jnp.where(dt < 0, xt, jnp.where(free, jnp.maximum(x - grad / lipschitz, 0.0), 0.0))
+    return new, jnp.einsum("mn,n->m", B, new) - c
 
 
 def _capacities(n, backend=None):
@@ -279,7 +317,7 @@ def _capacities(n, backend=None):
 
     On the CPU: multiples of 128 up to 1024, then of 256, with the multiples of 256 factorized at 8
     more (`_lapack_order`: 2048 entries in 20 ms at 2056 instead of 57 ms). Each size is one branch of a
-    `lax.switch`, compiled once (about 0.33 s each on 2 cores): 12 sizes for `n = 2048`. On the
+    `lax.switch`, compiled once (about 0.2 s each on 2 cores): 12 sizes for `n = 2048`. On the
     teapot (8 photos, 32x64 grid, free sets of 400-750 entries) `solve_many` compiled in 5.2 s and
     ran in the same 0.23 s as with multiples of 64 (20 sizes, 8.8 s to compile); multiples of 256
     compiled in 3.8 s and ran 9% slower, multiples of 32 in 17 s for 4% more images/s.
@@ -295,52 +333,36 @@ def _capacities(n, backend=None):
     return [k for k in sizes if k < min(n, last)] + [last]
 
 
-def _face_step(B, c, x, grad, sel, count, lipschitz, capacity):
-    """The step of `_newton_step` with the free set (`sel[:count]`) gathered into a block of `capacity` entries.
+def _face_newton(B, c, x, grad, sel, count, capacity):
+    """The Newton point of `_newton_step` from the free set (`sel[:count]`) gathered into a block of `capacity` entries.
 
-    `x` and every trial point are zero off the free set, so the step only needs the free rows of
-    `B` (`capacity x N`): the Newton point `argmin x^T B x - 2 c^T x` on the face `{x_i = 0 off the
-    free set}`, the projected backtracking on the exact change of the objective `d^T (B d + 2 grad)`
-    (float32 cannot resolve a difference of two values of `f` near the optimum), and the new
-    gradient `B x_new - c`. The Newton point comes from the Cholesky factor `L` of the equilibrated
-    free block `S^-1 B_FF S^-1 = L L^T`, `S = diag(B_FF)^1/2` (as `equilibrated_cholesky`, padded
-    with identity rows), gathered and scaled in one pass and never unscaled: `z = S^-1 L^-T L^-1
-    S^-1 c_F` and `d^T B_FF d = |L^T S d|^2`. A step reads `capacity * N` entries of `B` and costs
+    Returns `(z, x1, B x1 - c, f(x1) - f(x))` in `N` entries: the Newton point `z = argmin x^T B x -
+    2 c^T x` on the face `{x_i = 0 off the free set}`, the full step `x1 = max(z, 0)`, its gradient
+    and the exact change of the objective `d^T (B d + 2 grad)`, `d = x1 - x` (float32 cannot resolve
+    a difference of two values of `f` near the optimum). `x` is zero off the free set, so this only
+    needs the free rows of `B` (`capacity x N`). `z` comes from the Cholesky factor `L` of the
+    equilibrated free block `S^-1 B_FF S^-1 = L L^T`, `S = diag(B_FF)^1/2` (as
+    `equilibrated_cholesky`, padded with identity rows), gathered and scaled in one pass and never
+    unscaled: `z_F = S^-1 L^-T L^-1 S^-1 c_F`. A step reads `capacity * N` entries of `B` and costs
     `capacity^3 / 3` flops rather than `N^3 / 3`: for 384 free entries of 2048, about 1 ms instead
     of 90 ms.
     """
     sel = sel[:capacity]  # the `count` free entries, padded with index 0
     valid = jnp.arange(capacity) < count
     pick = lambda v: jnp.where(valid, v[sel], 0.0)
+    spread = lambda v: jnp.zeros_like(x).at[sel].add(jnp.where(valid, v, 0.0))  # (capacity,) -> (N,)
     scale = jnp.where(valid, jnp.sqrt(jnp.diagonal(B)[sel]), 1.0)
-    # the equilibrated free block, padded with identity rows, gathered from B directly (through the
-    # rows, and with a separate identity, it cost as much as the factorization)
+    # the equilibrated free block, padded with identity rows, taken from the free rows and handed to
+    # LAPACK as its transpose, the same matrix (gathered straight into LAPACK's column-major layout,
+    # it cost as much as the factorization)
     rows = B[sel]
     Ss = jnp.where(valid[:, None] & valid[None, :], rows[:, sel] / scale[:, None] / scale[None, :],
                    jnp.eye(capacity, dtype=B.dtype))
     L = jax.lax.linalg.cholesky(Ss.T, symmetrize_input=False)  # reads the lower triangle
-    xs, gs = pick(x), pick(grad)
     solve = partial(jax.lax.linalg.triangular_solve, L, left_side=True, lower=True)  # L in LAPACK's layout, no copy
     zs = solve(solve(pick(c) / scale), transpose_a=True) / scale
-    spread = lambda v: jnp.zeros_like(x).at[sel].add(jnp.where(valid, v, 0.0))  # (capacity,) -> (N,)
-    # f(xt) - f(x) = d^T B_FF d + 2 gs^T d, from the free rows of B (kept for the new gradient)
-    change = lambda xt: (xt - xs) @ (rows @ spread(xt - xs)) + 2 * gs @ (xt - xs)
-
-    # Projected backtracking: the largest t in {1, 1/2, ...} with f(P(x + t (z - x))) < f(x).
-    def ls_cond(s):
-        t, xt, dt, i = s
-        return (dt >= 0) & (i < 40)
-
-    def ls_body(s):
-        t, _, _, i = s
-        t = t * 0.5
-        xt = jnp.maximum(xs + t * (zs - xs), 0.0)
-        return t, xt, change(xt), i + 1
-
-    x1 = jnp.maximum(zs, 0.0)
-    _, xt, dt, _ = jax.lax.while_loop(ls_cond, ls_body, (1.0, x1, change(x1), 0))
-    # In degenerate cases the Newton path may not descend; a projected gradient step of
-    # length 1/L (L >= the largest eigenvalue of B) always does unless x is optimal.
-    new = jnp.where(valid, jnp.where(dt < 0, xt, jnp.maximum(xs - gs / lipschitz, 0.0)), 0.0)
-    # B x_new - c from the free rows of B; the padding repeats row sel[0] with weight 0
-    return spread(new), jnp.einsum("kn,k->n", rows, new) - c
+    x1 = jnp.where(valid, jnp.maximum(zs, 0.0), 0.0)
+    d = x1 - pick(x)
+    Bx1 = jnp.einsum("kn,k->n", rows, x1)  # B x1 from the free rows (the padding repeats row sel[0] with weight 0)
+    change = d @ (rows @ spread(d)) + 2 * pick(grad) @ d
+    return spread(zs), spread(x1), Bx1 - c, change
