@@ -363,11 +363,13 @@ def rmatvec(t, y):
 
 
 @partial(jit, static_argnames=("block", "chunk"))
-def gram_matrix(A: Float[Array, "P N"], block: int = 256, chunk: int = 2048) -> Float[Array, "N N"]:
+def gram_matrix(A: Float[Array, "P N"], block: int = 512, chunk: int = 2048) -> Float[Array, "N N"]:
     """`A^T A` from the column blocks on and above the diagonal, skipping all-zero column blocks.
 
     A transport matrix of an object on a plane has zero columns wherever the plane hides the sky
-    (the lower hemisphere): on the teapot fixture this is 3x faster than `A.T @ A`. The rows are
+    (the lower hemisphere): on the teapot fixture this is 3x faster than `A.T @ A`. Each pair of
+    blocks is a branch of the program: blocks of 512 columns compiled in 0.37 s at 32x64 and ran in
+    100 ms, blocks of 256 in 0.49 s and 98 ms, of 1024 in 0.19 s and 120 ms (2 cores). The rows are
     taken `chunk` at a time (`fold_rows`), so the memory beside `A` is the `N x N` result and
     one `chunk x N` block.
     """
