@@ -330,7 +330,7 @@ def _capacities(n, backend=None):
         return [k for k in (1024, 2048, 4096, 8192, 16384) if k < n] + [n]
     last = _lapack_order(n, "cpu")
     sizes = [_lapack_order(k, "cpu") for k in (*range(128, 1024, 128), *range(1024, 4096, 256))]
-    return [k for k in sizes if k < min(n, last)] + [last]
+    return [k for k in sizes if k < n] + [last]
 
 
 def _face_newton(B, c, x, grad, sel, count, capacity):
@@ -358,7 +358,7 @@ def _face_newton(B, c, x, grad, sel, count, capacity):
     rows = B[sel]
     Ss = jnp.where(valid[:, None] & valid[None, :], rows[:, sel] / scale[:, None] / scale[None, :],
                    jnp.eye(capacity, dtype=B.dtype))
-    L = jax.lax.linalg.cholesky(Ss.T, symmetrize_input=False)  # reads the lower triangle
+    L = cholesky(Ss.T)  # `capacity` is already an order LAPACK factorizes fast
     solve = partial(jax.lax.linalg.triangular_solve, L, left_side=True, lower=True)  # L in LAPACK's layout, no copy
     zs = solve(solve(pick(c) / scale), transpose_a=True) / scale
     x1 = jnp.where(valid, jnp.maximum(zs, 0.0), 0.0)

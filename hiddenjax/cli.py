@@ -171,8 +171,7 @@ def solve(args) -> dict:
         io.write_map(png, env if env.ndim == 2 else env.mean(axis=-1), signed=True)
     elif png:
         io.write_png(png, env)
-    message = not_converged(as_prior(prior), solution, matrix_free=isinstance(T, TransportOperator)
-                            and not fits_normal_matrix(views(T)))
+    message = not_converged(as_prior(prior), solution, matrix_free=not fits_normal_matrix(views(T)))
     if message:  # the library's throw=True error, as a warning: the map is written
         warnings.warn(message, UserWarning, stacklevel=1)
     print(f"wrote {out}: {T.grid.height}x{T.grid.width} env map ({prior_name}), {seconds:.2f} s, "

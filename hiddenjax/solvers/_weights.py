@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
+from .._qp import cholesky
 from ..transport import TransportMatrix
 from ._illumination import DEFAULT_RIDGE, DEFAULT_SMOOTH, _check_image, gram_matrix, prior_matrix, regularization_weights
 
@@ -69,8 +70,7 @@ def choose_weights(
     # The weights must give a system the solver can factor in the matrix's own precision (float32 by
     # default): a criterion that picks a scale too small for that moves up to the first that factors.
     gram = gram_matrix(T.A)
-    factors = lambda t: bool(jnp.all(jnp.isfinite(jnp.linalg.cholesky(gram + prior_matrix(T.grid, ls * t, lr * t,
-                                                                                           T.A.dtype)))))
+    factors = lambda t: bool(jnp.all(jnp.isfinite(cholesky(gram + prior_matrix(T.grid, ls * t, lr * t, T.A.dtype)))))
     chosen = best
     while chosen < len(scales) and not factors(scales[chosen]):
         chosen += 1
