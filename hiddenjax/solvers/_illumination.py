@@ -571,9 +571,10 @@ def _traced_weights(tree):
 
     `eqx.filter_jit` keys its cache on non-array leaves: as numbers, every new weight would compile
     the program again; as (weakly typed) arrays they are arguments of one program. Static fields
-    are not leaves, and booleans stay as they are.
+    are not leaves, and booleans stay as they are. `jax.device_put` keeps a number weakly typed, as
+    `jnp.asarray` does, without compiling a program (`stage`) to do it.
     """
-    return jax.tree_util.tree_map(lambda v: jnp.asarray(v) if type(v) in (int, float) else v, tree)
+    return jax.tree_util.tree_map(lambda v: jax.device_put(v) if type(v) in (int, float) else v, tree)
 
 
 def _checked_operator(built, prior):

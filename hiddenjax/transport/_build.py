@@ -4,7 +4,6 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -96,8 +95,8 @@ def transport_matrix(
         rays += n_rays
     return TransportMatrix(
         A=jax.device_put(A),  # aliases the aligned buffer on CPU: no second copy of A
-        albedo=jnp.asarray(np.asarray(plan.albedo(), np.float32)),  # cast on the host: no JAX program
-        pixels=jnp.asarray(np.asarray(plan.pixels, np.int32)),
+        albedo=jax.device_put(np.asarray(plan.albedo(), np.float32)),  # cast on the host, transferred: no JAX program
+        pixels=jax.device_put(np.asarray(plan.pixels, np.int32)),
         grid=grid,
         image_shape=(plan.H, plan.W),
         samples=int(samples),
