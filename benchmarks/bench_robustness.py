@@ -1,7 +1,7 @@
 """Does every solve answer? Every prior on real skies, three objects, three exposures, three noise levels.
 
     python benchmarks/bench_robustness.py [--quick] [--out DIR] [--priors hdr,l2,tv,sunsky] [--objects teapot,...]
-                                          [--solves exact,matrix-free,views,albedo]
+                                          [--solves exact,matrix-free,views,albedo] [--panoramas NAME,...]
 
 For each object (the teapot, sphere and coded-aperture fixtures on a plane, 128x128 pixels, a 32x64
 grid; `--quick`: the teapot at 64x64 and 16x32, two panoramas, one exposure, two noise levels) and
@@ -43,16 +43,21 @@ def main(argv=None):
     parser.add_argument("--priors", default="hdr,l2,tv,sunsky")
     parser.add_argument("--objects", default=",".join(OBJECTS), help="comma-separated fixtures (default: all three)")
     parser.add_argument("--solves", default="exact", help="comma-separated: exact, matrix-free, views, albedo")
+    parser.add_argument("--panoramas", default=",".join(NAMES),
+                        help="comma-separated development panoramas (default: all seven; runs the grid in parts)")
     args = parser.parse_args(argv)
     solves = args.solves.split(",")
     unknown = set(solves) - {"exact", "matrix-free", "views", "albedo"}
     if unknown:
         parser.error(f"unknown --solves {sorted(unknown)}")
+    chosen = tuple(args.panoramas.split(","))
+    if set(chosen) - set(NAMES):
+        parser.error(f"unknown --panoramas {sorted(set(chosen) - set(NAMES))}; choose from {', '.join(NAMES)}")
     args.out.mkdir(parents=True, exist_ok=True)
     hj.enable_compilation_cache()
 
     priors = args.priors.split(",")
-    objects, names = (("teapot",), NAMES[2:4]) if args.quick else (tuple(args.objects.split(",")), NAMES)
+    objects, names = (("teapot",), NAMES[2:4]) if args.quick else (tuple(args.objects.split(",")), chosen)
     exposures, noises = ((1.0,), (0.0, 0.05)) if args.quick else ((1e-4, 1.0, 1e4), (0.0, 0.01, 0.05))
     size, grid = (64, hj.EnvGrid(16, 32)) if args.quick else (128, hj.EnvGrid(32, 64))
     rows = []

@@ -27,7 +27,9 @@ class MatrixFree(eqx.Module):
     """Settings of the matrix-free solve (`solve_matrix_free`).
 
     **Fields:** `rtol` the KKT residual to reach (relative, as `ProjectedNewton`'s) and `xtol` the
-    largest change of the map in the last step (relative to its maximum); `max_steps`
+    largest change of the map in the last step (relative to its maximum; not asked once the KKT
+    residual is at the rounding level of the products, `8 eps` of their dtype, where steps only
+    follow the rounding); `max_steps`
     Newton steps per stage (the HDR prior's reweightings are stages too); `cg_steps` and
     `cg_tol` the conjugate-gradient budget and the tightest relative tolerance of a Newton step
     (each step solves to `sqrt(kkt)` clipped to `[cg_tol, 0.1]`: loosely far from the optimum); `coarse`
@@ -66,7 +68,10 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
     if len(images) != len(Ts):
         raise ValueError(f"{len(Ts)} views need {len(Ts)} images, got {len(images)}")
     ys = [np.asarray(_check_image(t, im), np.float64) for t, im in zip(Ts, images)]
-    c = sum(np.asarray(rmatvec(t, y), np.float64) for t, y in zip(Ts, ys))
+    products = [rmatvec(t, y) for t, y in zip(Ts, ys)]
+    c = sum(np.asarray(p, np.float64) for p in products)
+    # the KKT residual's rounding level: B x and c come from products in A's dtype (float32: 9.5e-7)
+    floor = 8 * max(float(jnp.finfo(p.dtype).eps) for p in products)
     ls, lr = (float(v) for v in regularization_weights(Ts, prior.smooth, prior.ridge, prior.absolute))
     energy = sum(np.asarray(column_energy(t), np.float64) for t in Ts)
     first, second = grid.difference_pairs()
@@ -111,7 +116,7 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
         metric = energy + ls * (np.bincount(first, w, grid.size) + np.bincount(second, w, grid.size)) + lr
         metric = np.maximum(metric, 1e-30 * metric.max())
         precondition = _jacobi(metric, c.ndim) if coarse is None else coarse.preconditioner(w, metric, c.ndim)
-        x, steps, products, kkt = _newton_cg(lambda v: hessian(v, w), c_t, precondition, x, settings)
+        x, steps, products, kkt = _newton_cg(lambda v: hessian(v, w), c_t, precondition, x, settings, floor)
         steps_total += steps
         if plain is None:
             plain = np.mean(x, axis=0, keepdims=True)
@@ -131,7 +136,7 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
                                 jnp.asarray(result.astype(np.int32)), f32(ls), f32(lr))
 
 
-def _newton_cg(hessian, c, precondition, x, settings: "MatrixFree"):
+def _newton_cg(hessian, c, precondition, x, settings: "MatrixFree", floor: float = 0.0):
     """Projected Newton with conjugate gradients on the free set: `min x^T B x - 2 c^T x`, `x >= 0`.
 
     Each step takes the free set `{x > 0 or grad < 0}` of every column, solves `B_FF d = -grad_F`
@@ -140,7 +145,12 @@ def _newton_cg(hessian, c, precondition, x, settings: "MatrixFree"):
     for the step `s`, as `ProjectedNewton` measures it). Columns are independent problems
     sharing the products by `B`. Stops when the KKT residual is below `rtol` and the last step
     moved the map by less than `xtol` of its maximum (an ill-conditioned problem can have a small
-    gradient far from its optimum). Returns `(x, newton steps, products by B, kkt)`.
+    gradient far from its optimum), or when the KKT residual is below `rtol` and `floor`, the
+    rounding level of the products: there the gradient is rounding, and each step solves
+    `B_FF d = -rounding`, moving the map along its least determined directions without lowering the
+    objective (a float32 solve at KKT 1e-7 moved its map by 1.3e-4 of its maximum per step, for an
+    objective change of 5e-12 of its value, until `max_steps` ran out). Returns `(x, newton steps,
+    products by B, kkt)`.
     """
     cmax = np.maximum(np.max(np.abs(c), axis=0), 1e-30)
     Bx = hessian(x)
@@ -148,7 +158,7 @@ def _newton_cg(hessian, c, precondition, x, settings: "MatrixFree"):
     kkt = np.max(np.abs(np.minimum(x, Bx - c)), axis=0) / cmax
     change = np.full(c.shape[1:], np.inf)
     for step in range(1, settings.max_steps + 1):
-        if np.all((kkt <= settings.rtol) & (change <= settings.xtol)):
+        if np.all((kkt <= settings.rtol) & ((change <= settings.xtol) | (kkt <= floor))):
             return x, step - 1, products, kkt
         grad = Bx - c
         free = ((x > 0) | (grad < 0)).astype(x.dtype)
