@@ -53,6 +53,55 @@ def test_leverage_is_the_hat_diagonal(scene_T, smooth, method):
         np.testing.assert_allclose(hj.cues.leverage(scene_T, ridge=1e-3, smooth=smooth), h, rtol=1e-12)
 
 
+def test_products_with_the_triangular_factor_skip_only_zeros():
+    """`rows L^-T` and `z L^-1` by blocks, skipping the zero blocks of the triangular `L^-1` and the
+    all-zero column blocks of `rows`, equal the dense products."""
+    from hiddenjax.cues._linear import _factor_edges, _times_factor, _times_factor_transpose
+
+    rng = np.random.default_rng(0)
+    n = 2200
+    edges = _factor_edges(n)
+    assert len(edges) == 5  # four blocks of 550
+    L = np.tril(rng.normal(size=(n, n)))
+    rows = rng.normal(size=(70, n))
+    rows[:, edges[2] : edges[3]] = 0  # a dark block: its products are skipped
+    with jax.enable_x64():
+        np.testing.assert_allclose(_times_factor_transpose(jnp.asarray(rows), jnp.asarray(L), edges), rows @ L.T,
+                                   rtol=1e-10, atol=1e-9)
+        np.testing.assert_allclose(_times_factor(jnp.asarray(rows), jnp.asarray(L), edges), rows @ L,
+                                   rtol=1e-10, atol=1e-9)
+
+
+def test_cues_of_a_half_dark_grid_by_blocks_match_the_dense_formulas():
+    """32x64 cells (four column blocks), the lower half dark as under a floor, so the blockwise products
+    skip: float64 cues equal the dense formulas, and float32 leverage and uncertainty match them."""
+    rng = np.random.default_rng(1)
+    P, grid = 1500, hj.EnvGrid(32, 64)
+    A = np.zeros((P, grid.size), np.float32)
+    A[:, : grid.size // 2] = rng.uniform(0, 1, (P, grid.size // 2)) ** 3 * (rng.random((P, grid.size // 2)) < 0.3)
+    y = A @ rng.uniform(0, 1, grid.size).astype(np.float32) + 0.01 * rng.normal(size=P).astype(np.float32)
+
+    def cues_of(dtype):
+        T = hj.TransportMatrix(jnp.asarray(A, dtype), jnp.ones(P, dtype), jnp.arange(P), grid, (50, 30))
+        return hj.cues.LinearCues.build(T, ridge=1e-4)
+
+    with jax.enable_x64():
+        cues = cues_of(jnp.float64)
+        h, cook = (np.asarray(v) for v in cues.influence(jnp.asarray(y, jnp.float64).reshape(50, 30)))
+    A64, ridge = A.astype(np.float64), float(cues.ridge)
+    Binv = np.linalg.inv(A64.T @ A64 + ridge * np.eye(grid.size))
+    W = A64 @ Binv  # rows w_i = B^-1 a_i^T
+    h64 = np.sum(W * A64, axis=1)
+    e = y - A64 @ (Binv @ (A64.T @ y))
+    p = h64.sum()
+    cook64 = e**2 * (h64 - ridge * np.sum(W * W, axis=1)) / ((1 - h64) ** 2 * p * (e @ e / (P - p)))
+    np.testing.assert_allclose(h, h64, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cook, cook64, rtol=1e-7, atol=1e-12)
+    cues = cues_of(jnp.float32)  # float32's Cook's distance carries the residual's rounding: not compared
+    np.testing.assert_allclose(cues.leverage(), h64, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(cues.uncertainty()).ravel(), np.sqrt(np.diag(Binv)), rtol=1e-4)
+
+
 @pytest.mark.parametrize("method", ["qr", "cholesky"])
 def test_float32_cues_survive_an_ill_conditioned_normal_matrix(method):
     # overlapping smooth lobes (a blurry object-camera): cond(B) = 3.6e7 at a relative ridge of 1e-6,

@@ -376,17 +376,35 @@ def gram_matrix(A: Float[Array, "P N"], block: int = 512, chunk: int = 2048) -> 
     edges = list(range(0, A.shape[1], block)) + [A.shape[1]]
     nonzero = jnp.max(jnp.abs(A), axis=0) > 0  # one pass over A (A's column slices, or A != 0, were copies)
     lit = [jnp.any(nonzero[a:b]) for a, b in zip(edges[:-1], edges[1:])]
-    pairs = [(i, j) for i in range(len(lit)) for j in range(i, len(lit))]
+    G = fold_rows(A, lambda G, start, rows: add_gram_blocks(G, rows, edges, lit), gram_blocks(edges, A.dtype), chunk)
+    return symmetric_from_blocks(G, edges)
 
-    def add(G, start, rows):
-        cols = [rows[:, a:b] for a, b in zip(edges[:-1], edges[1:])]
-        return tuple(g + jax.lax.cond(lit[i] & lit[j], lambda a, b: a.T @ b, lambda a, b: jnp.zeros_like(g), cols[i],
-                                      cols[j]) for g, (i, j) in zip(G, pairs))
 
+def _pairs(edges):
+    return [(i, j) for i in range(len(edges) - 1) for j in range(i, len(edges) - 1)]
+
+
+def gram_blocks(edges, dtype):
+    """Zero blocks `(i, j)`, `i <= j`, of an `N x N` Gram matrix cut at `edges` (see `add_gram_blocks`)."""
     sizes = np.diff(edges)
-    G = fold_rows(A, add, tuple(jnp.zeros((sizes[i], sizes[j]), A.dtype) for i, j in pairs), chunk)
-    upper = dict(zip(pairs, G))
-    return jnp.block([[upper[(i, j)] if i <= j else upper[(j, i)].T for j in range(len(lit))] for i in range(len(lit))])
+    return tuple(jnp.zeros((sizes[i], sizes[j]), dtype) for i, j in _pairs(edges))
+
+
+def add_gram_blocks(G, rows, edges, lit=None):
+    """`G + rows^T rows` on the blocks on and above the diagonal; a pair with an all-zero column block
+    of `rows` (`lit[k]` false: a traced flag) adds nothing and skips its product (`lax.cond`)."""
+    cols = [rows[:, a:b] for a, b in zip(edges[:-1], edges[1:])]
+    if lit is None:
+        return tuple(g + cols[i].T @ cols[j] for g, (i, j) in zip(G, _pairs(edges)))
+    return tuple(g + jax.lax.cond(lit[i] & lit[j], lambda a, b: a.T @ b, lambda a, b: jnp.zeros_like(g), cols[i],
+                                  cols[j]) for g, (i, j) in zip(G, _pairs(edges)))
+
+
+def symmetric_from_blocks(G, edges):
+    """The symmetric `N x N` matrix whose blocks on and above the diagonal are `G`."""
+    upper = dict(zip(_pairs(edges), G))
+    n = len(edges) - 1
+    return jnp.block([[upper[(i, j)] if i <= j else upper[(j, i)].T for j in range(n)] for i in range(n)])
 
 
 def fold_rows(A, fn, init, chunk: int = 2048):
