@@ -68,10 +68,10 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
     if len(images) != len(Ts):
         raise ValueError(f"{len(Ts)} views need {len(Ts)} images, got {len(images)}")
     ys = [np.asarray(_check_image(t, im), np.float64) for t, im in zip(Ts, images)]
-    products = [rmatvec(t, y) for t, y in zip(Ts, ys)]
-    c = sum(np.asarray(p, np.float64) for p in products)
+    Aty = [rmatvec(t, y) for t, y in zip(Ts, ys)]
+    c = sum(np.asarray(v, np.float64) for v in Aty)
     # the KKT residual's rounding level: B x and c come from products in A's dtype (float32: 9.5e-7)
-    floor = 8 * max(float(jnp.finfo(p.dtype).eps) for p in products)
+    floor = 8 * max(float(jnp.finfo(v.dtype).eps) for v in Aty)
     ls, lr = (float(v) for v in regularization_weights(Ts, prior.smooth, prior.ridge, prior.absolute))
     energy = sum(np.asarray(column_energy(t), np.float64) for t in Ts)
     first, second = grid.difference_pairs()
