@@ -24,7 +24,7 @@ from jaxtyping import Array, Float
 
 from ..solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, gram_matrix, prior_matrix, regularization_weights
 from ..solvers._illumination import (_check_image, _check_weights, _traced_weights, add_gram_blocks, fold_rows,
-                                     symmetric_from_blocks, transpose_times)
+                                     symmetric_from_blocks, transpose_times, upper_blocks)
 from ..transport import TransportMatrix, TransportOperator
 from .._jit import filter_jit
 from .._qp import cholesky
@@ -261,13 +261,11 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int):
         if ls is not None:
             DM = grid.difference(M)
             prior = prior + ls * DM.T @ DM
-        cut = list(zip(edges[:-1], edges[1:]))
-        upper = tuple(prior[a:b, c:d] for i, (a, b) in enumerate(cut) for (c, d) in cut[i:])
 
         def add_block(C, start, rows):  # the rows of Q = A L^-T, and C + Q^T Q on and above the diagonal
             return add_gram_blocks(C, _times_factor_transpose(rows, Linv, edges), edges)
 
-        C = symmetric_from_blocks(fold_rows(A, add_block, upper, chunk), edges)
+        C = symmetric_from_blocks(fold_rows(A, add_block, upper_blocks(prior, edges), chunk), edges)
         return jax.scipy.linalg.solve_triangular(cholesky(C), Linv, lower=True)
 
     Linv = jax.scipy.linalg.solve_triangular(factor, eye, lower=True)

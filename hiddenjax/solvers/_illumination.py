@@ -390,6 +390,11 @@ def gram_blocks(edges, dtype):
     return tuple(jnp.zeros((sizes[i], sizes[j]), dtype) for i, j in _pairs(edges))
 
 
+def upper_blocks(M, edges):
+    """The blocks `(i, j)`, `i <= j`, of a symmetric `N x N` matrix `M` cut at `edges`, in `add_gram_blocks`' order."""
+    return tuple(M[edges[i]:edges[i + 1], edges[j]:edges[j + 1]] for i, j in _pairs(edges))
+
+
 def add_gram_blocks(G, rows, edges, lit=None):
     """`G + rows^T rows` on the blocks on and above the diagonal; a pair with an all-zero column block
     of `rows` (`lit[k]` false: a traced flag) adds nothing and skips its product (`lax.cond`)."""
