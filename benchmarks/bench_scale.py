@@ -48,6 +48,8 @@ def peak_gib() -> float:
 
 def one(args):
     """One grid in this process: build, solve, score; prints a JSON line."""
+    import jax
+
     import hiddenjax as hj
 
     hj.enable_compilation_cache()
@@ -65,7 +67,7 @@ def one(args):
         held = T.A.nbytes
     else:
         T = hj.transport_operator(setup.scene, setup.camera, grid, samples=samples, pixel_samples=1, progress=False,
-                                  memory=args.memory)
+                                  memory=args.memory, products=args.products)
         held = T.nbytes
     build = time.perf_counter() - t0
     build_peak = peak_gib()
@@ -78,6 +80,7 @@ def one(args):
     print(json.dumps(dict(grid=[h, w], dense=args.dense, exact_solve=bool(exact), pixels=int(T.shape[0]),
                           samples=samples, build_seconds=build, solve_seconds=solve, held_gib=held / 2**30,
                           build_peak_gib=build_peak, peak_gib=peak_gib(), kkt_residual=float(np.max(sol.kkt_residual)),
+                          products=getattr(T, "products", "dense"), platform=jax.default_backend(),
                           steps=int(np.max(sol.steps)))))
 
 
@@ -126,6 +129,8 @@ def main(argv=None):
     parser.add_argument("--memory", default="8GiB", help="the memory budget of every build and solve")
     parser.add_argument("--grids", default=None, help="comma-separated HxW grids (default 32x64 .. 256x512)")
     parser.add_argument("--skip", default="", help="comma-separated parts to leave out: layouts, dense")
+    parser.add_argument("--products", default="auto", choices=("auto", "cpu", "device"),
+                        help="where the operator's sparse products run (transport_operator's products=)")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     parser.add_argument("--dense", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -180,7 +185,8 @@ def main(argv=None):
     plan = [(g, dense) for k, g in enumerate(grids)
             for dense in ((False, True) if k < 2 and "dense" not in skip else (False,))]
     for (h, w), dense in plan:
-        command = [sys.executable, __file__, "--out", str(args.out), "--one", f"{h}x{w}", "--memory", args.memory]
+        command = [sys.executable, __file__, "--out", str(args.out), "--one", f"{h}x{w}", "--memory", args.memory,
+                   "--products", args.products]
         done = subprocess.run(command + (["--dense"] if dense else []), capture_output=True, text=True)
         if done.returncode:
             print(f"{h}x{w}{' dense' if dense else ''} failed:\n{done.stderr[-2000:]}", flush=True)

@@ -7,8 +7,10 @@
 #
 # Steps run in order of importance, each under its own time limit, and none starts after
 # RUN_GPU_BUDGET_S seconds (default 480): the demo cold and warm, bench_compile and profile_stages
-# on both platforms, then the benchmarks (bench_scale on its two smaller grids, without the layout
-# study). A step cut by its limit is reported with rc 124.
+# on both platforms, then the benchmarks (bench_scale on RUN_GPU_SCALE_GRIDS, default its two
+# smaller grids, and on the CPU platform on RUN_GPU_SCALE_CPU_GRIDS, default 32x64; without the
+# layout study). RUN_GPU_STEPS=name,... runs only those steps. A step cut by its limit is reported
+# with rc 124, and a study that saves as it goes (bench_scale) keeps what it finished.
 # Each platform has a private compilation cache under OUT (so the first demo is the cold one, as a
 # new user's), and no process preallocates the GPU's memory (XLA_PYTHON_CLIENT_PREALLOCATE=false:
 # the benchmarks that start processes share the card).
@@ -58,6 +60,8 @@ for platform in cuda,cpu cpu; do
 done
 step cuda,cpu bench_scale "${RUN_GPU_SCALE_LIMIT_S:-120}" "$PY" benchmarks/bench_scale.py \
   --grids "${RUN_GPU_SCALE_GRIDS:-32x64,64x128}" --skip "${RUN_GPU_SCALE_SKIP:-layouts}"
+step cpu bench_scale "${RUN_GPU_SCALE_LIMIT_S:-120}" "$PY" benchmarks/bench_scale.py \
+  --grids "${RUN_GPU_SCALE_CPU_GRIDS:-32x64}" --skip "${RUN_GPU_SCALE_SKIP:-layouts}"
 for platform in cuda,cpu cpu; do
   step "$platform" bench_shadows 90 "$PY" benchmarks/bench_shadows.py --quick
   step "$platform" bench_solvers 120 "$PY" benchmarks/bench_solvers.py

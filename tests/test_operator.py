@@ -55,6 +55,24 @@ def test_rows_beyond_the_cache_are_recomputed_identically(small_setup, teapot):
     assert close(small.gram(), op.gram(), 1e-6)
 
 
+def test_device_products_equal_scipys(small_setup, teapot):
+    """`products="device"` (one segment sum on JAX's default device, here the CPU) against scipy's CSR
+    products, with rows held and rows recomputed per product."""
+    T, op = teapot
+    assert op.products == "cpu"  # "auto" on a CPU
+    held = hj.transport_operator(small_setup.scene, small_setup.camera, GRID, samples=4, pixel_samples=2, seed=3,
+                                 cache="100KiB", progress=False, products="device")
+    assert held.products == "device" and held._recompute and held._groups
+    rng = np.random.default_rng(4)
+    x, y = rng.random((GRID.size, 3)), rng.random(op.shape[0])
+    for v in (x, x[:, 0]):
+        assert close(held.matvec(v), op.matvec(v), 1e-6)
+    assert close(held.rmatvec(y), op.rmatvec(y), 1e-6)
+    assert close(held.rmatvec(np.stack([y, 2 * y], 1))[:, 1], 2 * np.asarray(op.rmatvec(y)), 1e-6)
+    with pytest.raises(ValueError, match="products must be one of"):
+        hj.transport_operator(small_setup.scene, small_setup.camera, GRID, progress=False, products="gpu")
+
+
 def test_curved_receivers_keep_their_closed_form_in_the_sparse_rows():
     """A seen sphere has a normal per point: the low-rank closed part would not pay, and is folded in."""
     sphere = trimesh.creation.icosphere(subdivisions=5)  # 20480 faces: a normal per pixel
