@@ -53,6 +53,7 @@ def test_rows_beyond_the_cache_are_recomputed_identically(small_setup, teapot):
     x = np.random.default_rng(2).random(GRID.size)
     assert np.array_equal(np.asarray(small.matvec(x)), np.asarray(op.matvec(x)))
     assert close(small.gram(), op.gram(), 1e-6)
+    assert close(small.column_energy(), np.sum(np.asarray(T.A, np.float64) ** 2, axis=0), 1e-6)
 
 
 def test_device_products_equal_scipys(small_setup, teapot):
@@ -82,6 +83,7 @@ def test_curved_receivers_keep_their_closed_form_in_the_sparse_rows():
     op = hj.transport_operator(setup.scene, setup.camera, GRID, memory="80MiB", threads=1, **kw)
     assert not op._low_rank
     assert close(op.matrix().A, T.A, 1e-6)
+    assert close(op.column_energy(), np.sum(np.asarray(T.A, np.float64) ** 2, axis=0), 1e-6)
 
 
 def test_aggregate_is_the_coarse_grids_transport(plane_only, small_setup):

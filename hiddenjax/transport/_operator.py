@@ -215,10 +215,18 @@ class TransportOperator(PixelRows):
         return self._on_device
 
     def column_energy(self):
-        """`diag(A^T A)`, float32 `(N,)`: each env pixel's total squared response."""
-        out = np.zeros(self.grid.size)
-        for _, block in self.dense_blocks():
-            out += np.einsum("pn,pn->n", block, block)
+        """`diag(A^T A)`, float32 `(N,)`: each env pixel's total squared response.
+
+        From the parts of `A = W Q + C`, never a dense row: `sum_p A_pn^2 = (Q^T W^T W Q)_nn +
+        2 sum_k Q_kn (C^T W)_nk + sum_p C_pn^2`, in float64 (the sparse rows' squares summed by column,
+        `C^T W` one sparse product by `W`'s `K` dense columns per block).
+        """
+        W, Q = self._W, self._Q
+        out = np.einsum("kn,kl,ln->n", Q, (W.T @ W).toarray(), Q) if self._low_rank else np.zeros(self.grid.size)
+        for start, C in self._sparse_blocks():
+            out += np.bincount(C.indices, np.square(C.data, dtype=np.float64), minlength=self.grid.size)
+            if self._low_rank:  # C^T W_block: N x K, with W's K dense columns
+                out += 2 * np.einsum("nk,kn->n", C.T @ W[start : start + C.shape[0]].toarray(), Q)
         return jnp.asarray(out, dtype=jnp.float32)
 
     def gram(self):
