@@ -33,6 +33,7 @@ from ._memory import format_bytes, parse_memory
 DEFAULT_MEMORY = "4GiB"
 _GROUP_ROWS = 4096  # rows per stored sparse block (chunks are merged up to this)
 _DENSE_BLOCK_BYTES = 64 << 20  # a dense row block of A formed for the gram or the column energies
+_SLICE_ENTRIES = 1 << 22  # sparse entries per slice of a block in column_energy (32 MiB of float64)
 PRODUCTS = ("auto", "cpu", "device")
 
 
@@ -223,10 +224,14 @@ class TransportOperator(PixelRows):
         """
         W, Q = self._W, self._Q
         out = np.einsum("kn,kl,ln->n", Q, (W.T @ W).toarray(), Q) if self._low_rank else np.zeros(self.grid.size)
-        for start, C in self._sparse_blocks():
-            out += np.bincount(C.indices, np.square(C.data, dtype=np.float64), minlength=self.grid.size)
-            if self._low_rank:  # C^T W_block: N x K, with W's K dense columns
-                out += 2 * np.einsum("nk,kn->n", C.T @ W[start : start + C.shape[0]].toarray(), Q)
+        for start, block in self._sparse_blocks():
+            # slices of about _SLICE_ENTRIES entries: their float64 temporaries stay small beside the rows held
+            step = max(1, _SLICE_ENTRIES * block.shape[0] // max(block.nnz, 1))
+            for a in range(0, block.shape[0], step):
+                C = block[a : a + step]
+                out += np.bincount(C.indices, np.square(C.data, dtype=np.float64), minlength=self.grid.size)
+                if self._low_rank:  # C^T W_rows: N x K, with W's K dense columns
+                    out += 2 * np.einsum("nk,kn->n", C.T @ W[start + a : start + a + C.shape[0]].toarray(), Q)
         return jnp.asarray(out, dtype=jnp.float32)
 
     def gram(self):
