@@ -381,8 +381,11 @@ def test_ctrl_c_is_one_line_and_leaves_no_file(tmp_path):
     (tmp_path / "scene.toml").write_text(scene + '[[surface]]\nmesh = "sphere"\nobserve = false\n'
                                                  '[surface.transform]\nscale = [0.3, 0.3, 0.3]\n')
     env = dict(os.environ, JAX_PLATFORMS="cpu")
+    # SIGINT as a terminal delivers it: a suite started in the background (`cmd &` in a script) ignores
+    # SIGINT, its children inherit that, and Python then leaves Ctrl-C ignored (as it should for them)
     proc = subprocess.Popen([sys.executable, "-m", "hiddenjax", "transport", "scene.toml", "-o", "A.npz"],
-                            cwd=tmp_path, env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                            cwd=tmp_path, env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     seen = ""
     while "transport matrix" not in seen and proc.poll() is None:
         seen += proc.stderr.read(1)  # the progress bar: the build has started
