@@ -32,7 +32,7 @@ from ._memory import format_bytes, parse_memory
 
 DEFAULT_MEMORY = "4GiB"
 _GROUP_ROWS = 4096  # rows per stored sparse block (chunks are merged up to this)
-_DENSE_BLOCK_BYTES = 64 << 20  # a dense row block of A formed for the gram or the column energies
+_DENSE_BLOCK_BYTES = 64 << 20  # a dense row block of A formed for the gram or the dense matrix
 _SLICE_ENTRIES = 1 << 22  # sparse entries per slice of a block in column_energy (32 MiB of float64)
 PRODUCTS = ("auto", "cpu", "device")
 
@@ -51,7 +51,7 @@ class TransportOperator(PixelRows):
     `products` where the sparse products run (`"cpu"` or `"device"`).
     """
 
-    def __init__(self, plan: BuildPlan, samples, seed, memory, cache, threads, progress, products="cpu"):
+    def __init__(self, plan: BuildPlan, samples, seed, memory, cache, threads, progress, products="auto"):
         self.grid: EnvGrid = plan.lighting.grid
         self.image_shape = (plan.H, plan.W)
         self.pixels = jnp.asarray(plan.pixels, dtype=jnp.int32)
@@ -96,7 +96,7 @@ class TransportOperator(PixelRows):
             if rows >= _GROUP_ROWS:
                 flush()
         flush()
-        self.products = products
+        self.products = _where_products(products, 12 * self.stored_entries)
         self._on_device = None  # the stored rows as COO triplets on the device, made at the first product
 
     # --- the rows --------------------------------------------------------------------------
@@ -355,9 +355,7 @@ def transport_operator(
           "use fewer pixels (a smaller image) or fewer pixel_samples, or a coarser grid")
     plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder)
     cache = None if cache is None else parse_memory(cache, "cache")
-    op = TransportOperator(plan, samples, seed, budget, cache, threads, progress)
-    op.products = _where_products(products, op.stored_entries * 12)
-    return op
+    return TransportOperator(plan, samples, seed, budget, cache, threads, progress, products)
 
 
 def _where_products(products: str, nbytes: int) -> str:
