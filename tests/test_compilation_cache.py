@@ -207,3 +207,21 @@ def test_every_program_of_the_package_is_compiled_with_its_compiler_options():
     from hiddenjax._jit import jit
 
     assert float(jit(lambda a: a @ a)(jnp.eye(3))[0, 0]) == 1.0
+
+
+def test_shadow_geometry_calls_are_one_program_each(small_setup):
+    """The edge coordinates, the depth lifts and the soft transport compile one program per call, not one
+    per array operation (eager, `edge_angle` was 35 programs, `depth_map` 15, `SoftTransport.matrix` 22)."""
+    import jax.numpy as jnp
+    sh = hj.shadows
+    s0, s1, light = jnp.array([0.0, 0.31, 0.0]), jnp.array([0.29, 0.31, 0.0]), jnp.array([0.51, 0.9, 0.4])
+    assert lowered_programs(lambda: sh.edge_angle(light, s0, s1)) <= 1
+    edges = jnp.stack([jnp.stack([s0, s1])] * 3)
+    assert lowered_programs(lambda: sh.edge_coordinates(light, edges)) <= 1
+    scene, camera = small_setup.scene, small_setup.camera
+    depth = hj.depth_map(scene, camera)
+    assert lowered_programs(lambda: sh.depth_to_points(depth, camera)) <= 1
+    pixels = jnp.array([[3.5, 7.5], [9.5, 1.5]])
+    assert lowered_programs(lambda: camera.ray_directions(pixels)) <= 1
+    st = sh.SoftTransport.from_scene(scene, camera, hj.EnvGrid(2, 4), samples=1)
+    assert lowered_programs(lambda: st.matrix(temperature=321.0)) <= 1

@@ -109,6 +109,7 @@ class Camera(eqx.Module):
         col = fx * p[..., 0] / z + cx
         return jnp.stack([row, col], axis=-1), z
 
+    @filter_jit  # one program (eager, its operations compiled eleven)
     def ray_directions(self, pixels):
         """Unit world-space directions of the rays through image points `(..., 2)` `(row, col)`."""
         pixels = jnp.asarray(pixels)

@@ -9,9 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._jit import filter_jit
 from ..scene import Camera
 
 
+@filter_jit
 def depth_to_points(depth: Float[Array, "H W"], camera: Camera) -> Float[Array, "H W 3"]:
     """World points of a z-buffer: `depth[r, c]` is the camera-space `z` seen at the pixel centre."""
     depth = jnp.asarray(depth)
@@ -23,6 +25,7 @@ def depth_to_points(depth: Float[Array, "H W"], camera: Camera) -> Float[Array, 
     return (cam - camera.translation[None, None]) @ camera.rotation
 
 
+@filter_jit
 def depth_normals(points: Float[Array, "H W 3"], camera: Camera) -> Float[Array, "H W 3"]:
     """Unit surface normals from the point cloud's image-space gradients, facing the camera.
 
@@ -40,6 +43,7 @@ def depth_normals(points: Float[Array, "H W 3"], camera: Camera) -> Float[Array,
     return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
 
 
+@filter_jit
 def sample_points(points: Float[Array, "H W C"], pixels: Float[Array, "*K 2"]) -> Float[Array, "*K C"]:
     """Bilinear lookup of a per-pixel field (points, normals) at continuous `(row, col)` coordinates."""
     points = jnp.asarray(points)

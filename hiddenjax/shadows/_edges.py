@@ -14,6 +14,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._jit import jit
+
 
 def _dot(a, b):
     return jnp.sum(a * b, axis=-1)
@@ -38,6 +40,7 @@ def _unit(x, fallback):
     return jnp.where(_dot(x, x)[..., None] > 0, x / n, fallback)
 
 
+@jit
 def edge_frame(s0: Float[Array, "*E 3"], s1: Float[Array, "*E 3"]):
     """The orthonormal frame `(omega, v, w)` of an edge: eq. 4.1-4.2, `w = omega x v`.
 
@@ -62,6 +65,7 @@ def edge_frame(s0: Float[Array, "*E 3"], s1: Float[Array, "*E 3"]):
     return omega, v, jnp.cross(omega, v)
 
 
+@jit
 def edge_plane_normal(s0, s1, theta) -> Float[Array, "*E 3"]:
     """Unit normal `n_theta` of the plane through the edge at angle `theta` (eq. 4.3).
 
@@ -75,6 +79,7 @@ def edge_plane_normal(s0, s1, theta) -> Float[Array, "*E 3"]:
     return jnp.cos(theta) * v + jnp.sin(theta) * w
 
 
+@jit
 def plane_alpha(points, s0, s1, theta) -> Float[Array, "*P"]:
     """Signed distance `alpha(p, theta) = n_theta . p - n_theta . s0` to the edge plane (eq. 4.4)."""
     n = edge_plane_normal(s0, s1, theta)
@@ -82,6 +87,7 @@ def plane_alpha(points, s0, s1, theta) -> Float[Array, "*P"]:
     return _dot(n, points - s0)
 
 
+@jit
 def edge_angle(points, s0, s1) -> Float[Array, "*P"]:
     """`theta` in `(-pi, pi]` of the half-plane through the edge containing each point (eq. 4.5-4.6).
 
@@ -99,6 +105,7 @@ def plane_angle(theta) -> Float[Array, "*P"]:
     return jnp.mod(theta, jnp.pi)
 
 
+@jit
 def half_plane_direction(s0, s1, theta) -> Float[Array, "*E 3"]:
     """Unit direction, orthogonal to the edge, pointing into the half-plane `theta`.
 
@@ -108,6 +115,7 @@ def half_plane_direction(s0, s1, theta) -> Float[Array, "*E 3"]:
     return jnp.cross(omega, n)
 
 
+@jit
 def edge_coordinates(points, edges: Float[Array, "K 2 3"]) -> Float[Array, "*P K"]:
     """Edge coordinates `(theta_0, ..., theta_{K-1})` of points `(..., 3)` from `K` edges (eq. 4.6).
 

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .._jit import filter_jit
 from ..scene import Camera, Scene
 from ..transport._build import _observed_pixels
 from ..transport._embree import RayCaster, pixel_centre_hits
@@ -78,6 +79,7 @@ def shading(points, normals, albedo, light, intensity=1.0):
     return albedo / jnp.pi * intensity * jnp.maximum(cos, 0.0) / d2
 
 
+@filter_jit  # one program, also when called eagerly
 def light_images(shadows: ShadowScene, positions, temperature=DEFAULT_TEMPERATURE, **kwargs) -> Float[Array, "L P"]:
     """Per-light radiance `(L, P)` at unit intensity with sigmoid shadows (eq. 4.11-4.12).
 

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._jit import filter_jit
 from ..scene import Camera, EnvGrid, Scene
 from ..scene._sampling import stratified_square
 from ..transport._build import _observed_pixels, _Points
@@ -107,6 +108,7 @@ class SoftTransport(eqx.Module):
             seed=int(seed),
         )
 
+    @filter_jit  # one program, also when called eagerly
     def matrix(self, occluder: Occluder | None = None, temperature=DEFAULT_TEMPERATURE,
                tolerance: float = DEFAULT_CULL_TOLERANCE) -> Float[Array, "P N"]:
         """`A(theta) (P, N)` for `occluder` (default: the scene's, e.g. moved by `Occluder.map_vertices`).
