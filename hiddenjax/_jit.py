@@ -17,6 +17,7 @@ import functools
 
 import equinox as eqx
 import jax
+import numpy as np
 
 COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False}
 """The compile options of hiddenjax's own programs: XLA's Triton GEMM tuning off on GPUs (ignored on CPUs)."""
@@ -55,3 +56,12 @@ def _top_level_options(make, fun, kwargs):
             return nested(*args, **kw)
 
     return call
+
+
+def host_array(x, dtype=None) -> jax.Array:
+    """A host array as a JAX array, cast on the host and transferred: no JAX program.
+
+    `jnp.asarray(x, dtype)` of a numpy array whose dtype differs compiles a conversion program per
+    shape and dtype when called eagerly; `np.asarray` then `jax.device_put` compiles nothing.
+    """
+    return jax.device_put(np.asarray(x, dtype))

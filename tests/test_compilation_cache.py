@@ -226,3 +226,25 @@ def test_shadow_geometry_calls_are_one_program_each(small_setup):
     assert lowered_programs(lambda: camera.ray_directions(pixels)) <= 1
     st = sh.SoftTransport.from_scene(scene, camera, hj.EnvGrid(2, 4), samples=1)
     assert lowered_programs(lambda: st.matrix(temperature=321.0)) <= 1
+
+
+def test_scene_setup_is_transfers_and_a_fit_a_few_programs(small_setup):
+    """Building the shadow models from a scene casts host arrays on the host and transfers them (no JAX
+    program: `jnp.asarray(x, dtype)` of each array compiled a conversion), a transport matrix's rows become an
+    image in one program (five eagerly), and a light fit from a start compiles a handful (`fit_lights` was
+    58 with its setup, `hiddenjax design --shape voxels --quick` 174, now 45)."""
+    import numpy as np
+    sh = hj.shadows
+    scene, camera = small_setup.scene, small_setup.camera
+    assert lowered_programs(lambda: sh.ShadowScene.from_scene(scene, camera)) <= 1  # the camera's rays
+    assert lowered_programs(lambda: sh.SoftTransport.from_scene(scene, camera, hj.EnvGrid(2, 4), samples=1)) <= 1
+    triangles = np.concatenate([s.triangles for s in scene])
+    assert lowered_programs(lambda: sh.Occluder.from_triangles(triangles)) == 0
+    assert lowered_programs(lambda: sh.Receivers.from_points(triangles[:, 0])) == 0
+    T = hj.transport_matrix(scene, camera, hj.EnvGrid(2, 4), samples=1, pixel_samples=1)
+    column = T.A[:, 0]
+    assert lowered_programs(lambda: T.rows_to_image(column)) <= 1
+    light = np.array([[0.15, 0.45, 0.1]])
+    image = np.asarray(hj.render_point_lights(scene, camera, light, [0.05]))
+    fit = lambda: hj.shadows.fit_lights(image, scene, camera, light + [[0.03, 0.0, 0.04]], steps=8, polish=False)
+    assert lowered_programs(fit) <= 8

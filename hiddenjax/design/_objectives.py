@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._jit import filter_jit, host_array
 from .._qp import ProjectedNewton, solve_from
 from ..scene import EnvGrid
 from ..solvers import L2Prior, hdr_prior, prior_matrix
@@ -107,17 +108,19 @@ class Objective(eqx.Module):
             sigma = noise * jnp.mean(skies @ bare.T, axis=1)
         else:
             skies, sigma = jnp.zeros((0, grid.size), bare.dtype), jnp.ones((0,), bare.dtype)
-        return cls(R, jnp.asarray(band), skies, sigma, prior, grid, kind)
+        return cls(R, host_array(band, np.int32), skies, sigma, prior, grid, kind)
 
     def covariance(self, A: Float[Array, "P N"]) -> Float[Array, "N N"]:
         """`C = (A^T A + R)^-1` (unit noise), symmetrized."""
         C = jnp.linalg.inv(A.T @ A + self.R)
         return (C + C.T) / 2
 
+    @filter_jit  # one program, also when called eagerly
     def uncertainty(self, A: Float[Array, "P N"]) -> Float[Array, " N"]:
         """Posterior standard deviation of each env cell, `sqrt(diag C)` (unit noise)."""
         return jnp.sqrt(jnp.diagonal(self.covariance(A)))
 
+    @filter_jit  # one program, also when called eagerly
     def leverage(self, A: Float[Array, "P N"]) -> Float[Array, " P"]:
         """`h_ii = a_i C a_i^T` (eq. 6.2) of each row under this objective's prior."""
         return jnp.sum((A @ self.covariance(A)) * A, axis=1)

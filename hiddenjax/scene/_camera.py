@@ -94,7 +94,7 @@ class Camera(eqx.Module):
     @property
     def origin(self):
         """Centre of projection in world coordinates, `(3,)`."""
-        return -self.rotation.T @ self.translation
+        return _origin(self.rotation, self.translation)
 
     def project(self, points):
         """World points `(..., 3)` -> `(pixels (..., 2) as (row, col), depth (...))`.
@@ -138,6 +138,11 @@ class Camera(eqx.Module):
 @filter_jit
 def _rays(camera, pixels):
     return camera.origin, camera.ray_directions(pixels)
+
+
+@filter_jit  # one program, also when called eagerly (three otherwise)
+def _origin(rotation, translation):
+    return -rotation.T @ translation
 
 
 def _check_size(width, height):

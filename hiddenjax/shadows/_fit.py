@@ -19,7 +19,7 @@ from ..scene import Camera, Scene
 from ._polish import polish_lights
 from ._search import check_outside, hard_fit, search_lights
 from ._shading import ShadowScene, light_images
-from .._jit import jit
+from .._jit import host_array, jit
 
 # Culling tolerance while fitting: a skipped triangle darkens a pixel by less than 1e-6.
 FIT_TOLERANCE = 1e-6
@@ -158,7 +158,8 @@ def fit_lights(
     if not np.all(np.isfinite(image)):
         raise ValueError("image contains non-finite values")
     y = shadows.image_to_rows(image)
-    scale = jnp.sqrt(jnp.mean(y**2))
+    rows = np.asarray(y)
+    scale = host_array(np.sqrt(np.mean(np.square(rows), dtype=rows.dtype)))  # on the host: no JAX program
     if not float(scale) > 0:
         raise ValueError("the image is black over the fitted pixels: there is nothing to fit")
     check_outside(scene, init)
@@ -193,19 +194,20 @@ def _soft_fit(shadows, y, scale, init, intensities, temperature, method, steps, 
     temps = np.geomspace(t0, t1, rounds)
     if intensities is None:
         intensities = initial_intensities(shadows, y, init, temps[0])
-    params = (jnp.asarray(init, jnp.float32), jnp.log(jnp.asarray(intensities, jnp.float32)).reshape(-1),
-              jnp.zeros((), jnp.float32))
-    if params[1].shape != (len(init),) or not np.all(np.isfinite(np.asarray(params[1]))):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_i = np.log(np.asarray(intensities, np.float32)).reshape(-1)
+    if log_i.shape != (len(init),) or not np.all(np.isfinite(log_i)):
         raise ValueError(f"intensities must be {len(init)} positive values")
+    params = (host_array(init, np.float32), host_array(log_i), host_array(np.zeros((), np.float32)))
 
     run = (_lm_round if method == "lm" else _gd_round)[bool(ambient)]
     history, trajectory = [], [np.asarray(params[0])]
     for T in temps:
-        params, loss = run(params, (shadows, y, scale, jnp.float32(T)), per_round, learning_rate * shadows.scale)
+        params, loss = run(params, (shadows, y, scale, host_array(np.float32(T))), per_round, learning_rate * shadows.scale)
         history.append(float(loss))
         trajectory.append(np.asarray(params[0]))
     positions, log_i, a = (np.asarray(p, np.float64) for p in params)
-    return positions, np.exp(log_i), float(a * scale), history, trajectory, temps
+    return positions, np.exp(log_i), float(a * np.asarray(scale)), history, trajectory, temps
 
 
 def _loss(params, args):

@@ -12,10 +12,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._jit import filter_jit
+from .._jit import filter_jit, host_array
 from ..scene import Camera, Scene
 from ..transport._build import _observed_pixels
 from ..transport._embree import RayCaster, pixel_centre_hits
+from ..transport._matrix import _scatter_rows
 from ._visibility import DEFAULT_TEMPERATURE, Occluder, Receivers, culled_log_visibility
 
 
@@ -47,10 +48,10 @@ class ShadowScene(eqx.Module):
         surface = hits.surface[pixels]
         planar = [not s.shadows_itself for s in scene]
         return cls(
-            points=jnp.asarray(x, jnp.float32),
-            normals=jnp.asarray(hits.normal[pixels], jnp.float32),
-            albedo=jnp.asarray(hits.albedo[pixels], jnp.float32),
-            pixels=jnp.asarray(pixels, jnp.int32),
+            points=host_array(x, np.float32),
+            normals=host_array(hits.normal[pixels], np.float32),
+            albedo=host_array(hits.albedo[pixels], np.float32),
+            pixels=host_array(pixels, np.int32),
             receivers=Receivers.from_points(x, surface, planar, tile=tile),
             occluder=Occluder.from_scene(scene, cluster),
             image_shape=(camera.height, camera.width),
@@ -59,16 +60,25 @@ class ShadowScene(eqx.Module):
 
     def rows_to_image(self, rows):
         """Scatter `(P,)` values into an `(H, W)` image, zero outside the mask."""
-        H, W = self.image_shape
-        return jnp.zeros(H * W, rows.dtype).at[self.pixels].set(rows).reshape(H, W)
+        return _scatter_rows(jnp.asarray(rows), self.pixels, self.image_shape)
 
     def image_to_rows(self, image):
-        image = jnp.asarray(image)
+        """The observed pixels' values `(P,)` of an `(H, W)` image, or of the channel mean of `(H, W, C)`."""
+        host = not isinstance(image, jax.Array)  # a host image is read on the host: no JAX program
+        image = np.asarray(image) if host else image
         if image.shape[:2] != self.image_shape:
             raise ValueError(f"image shape {image.shape} does not match the scene's camera {self.image_shape}")
-        if image.ndim == 3:
-            image = image.mean(axis=-1)  # positions are fitted to the grey (channel mean) image
-        return image.reshape(-1)[self.pixels]
+        if not host:
+            return _grey_rows(image, self.pixels)
+        image = image.astype(jax.dtypes.canonicalize_dtype(np.result_type(image.dtype, np.float32)), copy=False)
+        grey = image.mean(axis=-1, dtype=image.dtype) if image.ndim == 3 else image
+        return host_array(grey.reshape(-1)[np.asarray(self.pixels)])
+
+
+@filter_jit
+def _grey_rows(image, pixels):
+    grey = image.mean(axis=-1) if image.ndim == 3 else image  # positions are fitted to the grey (channel mean) image
+    return grey.reshape(-1)[pixels]
 
 
 def shading(points, normals, albedo, light, intensity=1.0):

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._jit import filter_jit
+from .._jit import filter_jit, host_array
 from ..scene import Camera, EnvGrid, Scene
 from ..scene._sampling import stratified_square
 from ..transport._build import _observed_pixels, _Points
@@ -88,19 +88,19 @@ class SoftTransport(eqx.Module):
         columns = np.nonzero(np.any(above | straddle, axis=0))[0]
         closed = np.where(above, (normals @ grid.direction_moments().reshape(-1, 3).T)[which], 0.0)
         u = stratified_square(np.random.default_rng([seed, 3]), len(columns), int(samples))
-        f32 = jnp.float32
+        f32 = np.float32  # cast on the host, transferred: no JAX program per array
         return cls(
             receivers=Receivers.from_points(x, pts.surface, [not s.shadows_itself for s in scene], tile=tile),
-            normals=jnp.asarray(normal, f32),
-            albedo=jnp.asarray(pts.albedo, f32),
+            normals=host_array(normal, f32),
+            albedo=host_array(pts.albedo, f32),
             occluder=Occluder.from_scene(scene, cluster),
-            directions=jnp.asarray(grid.sample_directions(columns[:, None], u), f32),
-            columns=jnp.asarray(columns, jnp.int32),
-            closed=jnp.asarray(closed[:, columns], f32),
-            above=jnp.asarray(above[:, columns]),
-            straddle=jnp.asarray(straddle[:, columns]),
-            omega=jnp.asarray(grid.solid_angles().reshape(-1)[columns], f32),
-            pixels=jnp.asarray(pixels, jnp.int32),
+            directions=host_array(grid.sample_directions(columns[:, None], u), f32),
+            columns=host_array(columns, np.int32),
+            closed=host_array(closed[:, columns], f32),
+            above=host_array(above[:, columns]),
+            straddle=host_array(straddle[:, columns]),
+            omega=host_array(grid.solid_angles().reshape(-1)[columns], f32),
+            pixels=host_array(pixels, np.int32),
             grid=grid,
             image_shape=(camera.height, camera.width),
             samples=int(samples),
@@ -159,6 +159,7 @@ class SoftTransport(eqx.Module):
         return self._place(jax.vmap(self._column, in_axes=(1, 0, 0, 1, 1, 1))(
             visibility, self.directions, self.omega, self.closed, self.above, self.straddle))
 
+    @filter_jit  # one program, also when called eagerly
     def points(self) -> Float[Array, "Q 3"]:
         """The footprint points `(P * pixel_samples, 3)`, in the rows' order (pixel-major)."""
         return jnp.stack([self.receivers.scatter(self.receivers.points[..., i]) for i in range(3)], axis=-1)

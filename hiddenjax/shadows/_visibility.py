@@ -31,6 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._jit import host_array
+
 DEFAULT_TEMPERATURE = 100.0
 # A culled triangle's soft indicator is below this at every point of the tile it skips.
 DEFAULT_CULL_TOLERANCE = 1e-10
@@ -210,6 +212,9 @@ class Occluder(eqx.Module):
     @classmethod
     def gather(cls, triangles, index, surface: tuple[int, ...]) -> "Occluder":
         """The occluder of triangles `(F, 3, 3)` (may be traced) grouped by `clusters`' `index` and `surface`."""
+        if isinstance(triangles, np.ndarray):  # on the host, then transferred: no JAX program
+            tri = np.where((index >= 0)[..., None, None], triangles[np.maximum(index, 0)], 0.0)
+            return cls(host_array(tri, triangles.dtype), tuple(surface))
         index = jnp.asarray(index)
         tri = jnp.asarray(triangles)[jnp.maximum(index, 0)]
         return cls(jnp.where((index >= 0)[..., None, None], tri, 0.0), tuple(surface))
@@ -268,8 +273,8 @@ class Receivers(eqx.Module):
         lo, hi = p.min(axis=1), p.max(axis=1)
         centre = (lo + hi) / 2
         radius = np.linalg.norm(p - centre[:, None], axis=-1).max(axis=1)
-        return cls(jnp.asarray(p), jnp.asarray(order.reshape(-1), jnp.int32), jnp.asarray(labels[slot]),
-                   jnp.asarray(centre), jnp.asarray(radius), len(pts), tuple(bool(b) for b in planar))
+        return cls(host_array(p), host_array(order.reshape(-1), np.int32), host_array(labels[slot], np.int32),
+                   host_array(centre), host_array(radius), len(pts), tuple(bool(b) for b in planar))
 
     def map_points(self, fn) -> "Receivers":
         """Apply `fn (T, B, 3) -> (T, B, 3)` to the points (e.g. slide them as a camera moves).

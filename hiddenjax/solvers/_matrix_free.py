@@ -20,6 +20,7 @@ from ..scene import EnvGrid
 from ..transport import TransportMatrix, TransportOperator
 from ._illumination import (IlluminationOperator, IlluminationSolution, L2Prior, _check_image, as_prior,
                             column_energy, log_domain_weights, matvec, regularization_weights, rmatvec, views)
+from .._jit import host_array
 from .._qp import MAX_STEPS, SUCCESS
 
 
@@ -109,10 +110,10 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
             ones = hessian(np.ones(grid.size), np.ones(len(first)))  # B_0 1
             c_t = c - prior.threshold * plain * ones.reshape((-1,) + (1,) * (c.ndim - 1))
         if prior.reweight and (stage or started):
-            w = np.asarray(log_domain_weights(grid, jnp.asarray(x), prior.floor), np.float64)
+            w = np.asarray(log_domain_weights(grid, host_array(x), prior.floor), np.float64)
             # the spread rule reads the first reweighted map (from a start: the starting map)
             if prior.adapt and stage == (0 if started else min(1, prior.reweight - 1) + 1):
-                ls = ls * float(prior.spread_factor(jnp.asarray(x), jnp.asarray(energy)))
+                ls = ls * float(prior.spread_factor(host_array(x), host_array(energy)))
         metric = energy + ls * (np.bincount(first, w, grid.size) + np.bincount(second, w, grid.size)) + lr
         metric = np.maximum(metric, 1e-30 * metric.max())
         precondition = _jacobi(metric, c.ndim) if coarse is None else coarse.preconditioner(w, metric, c.ndim)
@@ -129,11 +130,11 @@ def solve_matrix_free(T, image, prior=None, *, init=None, settings: MatrixFree |
     if throw and np.any(result != SUCCESS):
         raise RuntimeError(f"the matrix-free solve stopped at KKT residual {np.max(kkt):.2e} after {steps_total} "
                            f"steps, above rtol={settings.rtol}: raise MatrixFree(max_steps=...), or pass throw=False")
-    f32 = lambda a: jnp.asarray(a, jnp.float32)
+    f32 = lambda a: host_array(a, np.float32)  # cast on the host, transferred: no JAX program
     env = f32(x).reshape(grid.shape + x.shape[1:])
     ones = np.ones(c.shape[1:], np.int32)
-    return IlluminationSolution(env, f32(objective), f32(kkt), jnp.asarray(ones * steps_total),
-                                jnp.asarray(result.astype(np.int32)), f32(ls), f32(lr))
+    return IlluminationSolution(env, f32(objective), f32(kkt), host_array(ones * steps_total),
+                                host_array(result.astype(np.int32)), f32(ls), f32(lr))
 
 
 def _newton_cg(hessian, c, precondition, x, settings: "MatrixFree", floor: float = 0.0):
@@ -261,7 +262,7 @@ class _Coarse:
     def start(self, ys, prior, c):
         """`(x, m)`: the exact solve of the coarse problem (the prior's own reweightings included),
         spread over the fine cells, and with a threshold the mean of the thesis' coarse map (else None)."""
-        images = [t.rows_to_image(jnp.asarray(y, jnp.float32)) for t, y in zip(self.views, ys)]
+        images = [t.rows_to_image(host_array(y, np.float32)) for t, y in zip(self.views, ys)]
         images = images[0] if len(self.views) == 1 else images
         op = IlluminationOperator.build(self.views, prior=prior)
         spread = lambda sol: np.asarray(sol.env, np.float64).reshape((self.grid.size,) + c.shape[1:])[self.of]

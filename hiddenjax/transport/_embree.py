@@ -7,6 +7,7 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from ..scene import Camera, Scene
+from ..scene._camera import _rays
 
 
 def _f32(a) -> np.ndarray:
@@ -87,8 +88,9 @@ class RayCaster:
 def pixel_centre_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """`(origins, directions)` `(H*W, 3)` float64 of one ray through each pixel centre, row-major."""
     rows, cols = np.meshgrid(np.arange(camera.height) + 0.5, np.arange(camera.width) + 0.5, indexing="ij")
-    d = np.asarray(camera.ray_directions(np.stack([rows, cols], -1).reshape(-1, 2)), dtype=np.float64)
-    return np.broadcast_to(np.asarray(camera.origin, np.float64), d.shape), d
+    origin, d = _rays(camera, np.stack([rows, cols], -1).reshape(-1, 2))  # one program
+    d = np.asarray(d, dtype=np.float64)
+    return np.broadcast_to(np.asarray(origin, np.float64), d.shape), d
 
 
 def pixel_centre_hits(caster: RayCaster, camera: Camera) -> Hits:

@@ -1,6 +1,7 @@
 """The `TransportMatrix` pytree, `render` (eq. 5.2) and `.npz` persistence."""
 
 import json
+from functools import partial
 
 import equinox as eqx
 import jax
@@ -10,7 +11,7 @@ from jaxtyping import Array, Float, Int
 
 from ..io._files import atomic_path
 from ..scene import EnvGrid
-from .._jit import filter_jit
+from .._jit import filter_jit, jit
 
 
 class PixelRows:
@@ -58,9 +59,14 @@ class PixelRows:
             out = np.zeros((H * W,) + rows.shape[1:], dtype=rows.dtype)
             out[pixels[inside]] = rows[inside]
             return out.reshape((H, W) + rows.shape[1:])
-        rows = jnp.asarray(rows)
-        out = jnp.zeros((H * W,) + rows.shape[1:], dtype=rows.dtype).at[self.pixels].set(rows, mode="drop")
-        return out.reshape((H, W) + rows.shape[1:])
+        return _scatter_rows(jnp.asarray(rows), self.pixels, (H, W))
+
+
+@partial(jit, static_argnums=2)  # one program, also when called eagerly (five operations otherwise)
+def _scatter_rows(rows, pixels, image_shape):
+    H, W = image_shape
+    out = jnp.zeros((H * W,) + rows.shape[1:], dtype=rows.dtype).at[pixels].set(rows, mode="drop")
+    return out.reshape((H, W) + rows.shape[1:])
 
 
 class TransportMatrix(PixelRows, eqx.Module):

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from .._jit import jit
+from .._jit import host_array, jit
 from ..scene import Camera, EnvGrid, Scene
 from ._build import (DEFAULT_PIXEL_SAMPLES, DEFAULT_SAMPLES, BuildPlan, _check_build_args, guard, need_setup)
 from ._matrix import PixelRows, TransportMatrix, check_envmap
@@ -54,8 +54,8 @@ class TransportOperator(PixelRows):
     def __init__(self, plan: BuildPlan, samples, seed, memory, cache, threads, progress, products="auto"):
         self.grid: EnvGrid = plan.lighting.grid
         self.image_shape = (plan.H, plan.W)
-        self.pixels = jnp.asarray(plan.pixels, dtype=jnp.int32)
-        self.albedo = jnp.asarray(plan.albedo(), dtype=jnp.float32)
+        self.pixels = host_array(plan.pixels, np.int32)
+        self.albedo = host_array(plan.albedo(), np.float32)
         self.samples, self.pixel_samples, self.seed = int(samples), plan.S, int(seed)
         self.memory, self._threads, self._plan = memory, threads, plan
         P, N, S = plan.P, plan.N, plan.S
@@ -182,7 +182,7 @@ class TransportOperator(PixelRows):
         stored = self.products == "cpu"
         for start, part in self._each_block(lambda start, C: (start, C @ x32), stored):
             out[start : start + len(part)] += part
-        return jnp.asarray(out, dtype=jnp.float32)
+        return host_array(out, np.float32)
 
     def rmatvec(self, y):
         """`A^T y` for `y (P,)` or `(P, C)`, float32 `(N,)` or `(N, C)`."""
@@ -197,7 +197,7 @@ class TransportOperator(PixelRows):
         stored = self.products == "cpu"
         for part in self._each_block(lambda start, C: C.T @ y32[start : start + C.shape[0]], stored):
             out += part
-        return jnp.asarray(out, dtype=jnp.float32)
+        return host_array(out, np.float32)
 
     def _device_rows(self):
         """`(rows, cols, vals)`: the stored sparse rows as one COO triplet on JAX's default device.
@@ -210,7 +210,7 @@ class TransportOperator(PixelRows):
             for g in self._groups:
                 C = g.rows
                 row = np.repeat(np.arange(g.start, g.start + C.shape[0], dtype=np.int32), np.diff(C.indptr))
-                parts.append(tuple(jnp.asarray(a) for a in (row, C.indices.astype(np.int32), C.data)))
+                parts.append(tuple(host_array(a) for a in (row, C.indices.astype(np.int32), C.data)))
             empty = (jnp.zeros(0, jnp.int32), jnp.zeros(0, jnp.int32), jnp.zeros(0, jnp.float32))
             self._on_device = tuple(jnp.concatenate(p) for p in zip(*parts)) if parts else empty
         return self._on_device
@@ -232,7 +232,7 @@ class TransportOperator(PixelRows):
                 out += np.bincount(C.indices, np.square(C.data, dtype=np.float64), minlength=self.grid.size)
                 if self._low_rank:  # C^T W_rows: N x K, with W's K dense columns
                     out += 2 * np.einsum("nk,kn->n", C.T @ W[start + a : start + a + C.shape[0]].toarray(), Q)
-        return jnp.asarray(out, dtype=jnp.float32)
+        return host_array(out, np.float32)
 
     def gram(self):
         """`A^T A`, float32 `(N, N)`, accumulated over dense row blocks (eq. 5.13-5.14) on the lit columns only.
@@ -249,7 +249,7 @@ class TransportOperator(PixelRows):
             G += b.T @ b
         out = np.zeros((N, N), np.float32)
         out[np.ix_(lit, lit)] = G
-        return jnp.asarray(out)
+        return host_array(out)
 
     def matrix(self) -> TransportMatrix:
         """The dense `TransportMatrix` (refused, with the size, when it does not fit the memory budget)."""
@@ -258,7 +258,7 @@ class TransportOperator(PixelRows):
         A = np.zeros((P, N), np.float32)
         for start, block in self.dense_blocks():
             A[start : start + len(block)] = block
-        return self._dense(jnp.asarray(A), self.grid, self.samples)
+        return self._dense(host_array(A), self.grid, self.samples)
 
     def aggregate(self, grid: EnvGrid) -> TransportMatrix:
         """The dense transport of a coarser grid whose cells are unions of this one's: `A P` with `P` summing cells.
@@ -282,7 +282,7 @@ class TransportOperator(PixelRows):
             (P, grid.size), np.float32)
         for start, C in self._sparse_blocks():
             A[start : start + C.shape[0]] += (C @ merge).toarray()
-        return self._dense(jnp.asarray(A), grid, self.samples * fh * fw)
+        return self._dense(host_array(A), grid, self.samples * fh * fw)
 
     def _dense(self, A, grid, samples) -> TransportMatrix:
         return TransportMatrix(A=A, albedo=self.albedo, pixels=self.pixels, grid=grid, image_shape=self.image_shape,
