@@ -248,3 +248,16 @@ def test_scene_setup_is_transfers_and_a_fit_a_few_programs(small_setup):
     image = np.asarray(hj.render_point_lights(scene, camera, light, [0.05]))
     fit = lambda: hj.shadows.fit_lights(image, scene, camera, light + [[0.03, 0.0, 0.04]], steps=8, polish=False)
     assert lowered_programs(fit) <= 8
+
+
+def test_a_shipped_corner_network_loads_and_tracks_in_a_few_programs():
+    """`hj.corners.pretrained` transfers its float16 leaves as float32 arrays cast on the host (one
+    conversion program per leaf before: 9), and `track` runs its batches as one program plus the polar
+    coordinates' one (the `hiddenjax corner` command compiled 18 programs, now 3)."""
+    import numpy as np
+    hc = hj.corners
+    assert lowered_programs(lambda: hc.pretrained("L", "fixed-lamp")) <= 1
+    model = hc.pretrained("L", "fixed-lamp")
+    size = hc.pretrained_info("L", "fixed-lamp")["architecture"]["size"]
+    frames = np.random.default_rng(0).normal(0.0, 1e-3, (3, size, size)).astype(np.float32)
+    assert lowered_programs(lambda: hc.track(model, frames, batch=4)) <= 2

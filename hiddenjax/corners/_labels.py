@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._jit import jit
 from ._scenes import RHO_MAX
 
 
@@ -56,11 +57,13 @@ class PolarGrid(eqx.Module):
         return jnp.exp(-((i - c[0]) ** 2 + (j - c[1]) ** 2) / (2 * sigma**2))
 
 
+@jit  # one program, also when called eagerly
 def position_to_polar(xz):
     xz = jnp.asarray(xz)
     return jnp.stack([jnp.arctan2(xz[..., 1], xz[..., 0]), jnp.hypot(xz[..., 0], xz[..., 1])], -1)
 
 
+@jit  # one program, also when called eagerly
 def polar_to_position(polar):
     polar = jnp.asarray(polar)
     return polar[..., 1:] * jnp.stack([jnp.cos(polar[..., 0]), jnp.sin(polar[..., 0])], -1)

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jit import host_array
 from ..io._files import atomic_path
 from ._labels import PolarGrid
 from ._network import CornerNet
@@ -91,7 +92,8 @@ def pretrained(kind: str, setting: str = "fixed-lamp", *, folder=None) -> Corner
         raise ValueError(f"{folder / entry['file']} does not match its SHA-256 in the manifest: the file is damaged "
                          "or was replaced; reinstall the package or retrain it")
     model = eqx.tree_deserialise_leaves(io.BytesIO(data), _skeleton(entry["architecture"]))
-    return jax.tree.map(lambda a: jnp.asarray(a, jnp.float32) if isinstance(a, np.ndarray) else a, model)
+    # float16 leaves cast on the host and transferred: no conversion program per leaf
+    return jax.tree.map(lambda a: host_array(a, np.float32) if isinstance(a, np.ndarray) else a, model)
 
 
 def save_pretrained(folder, model: CornerNet, kind: str, setting: str, architecture: dict, record: dict) -> dict:

@@ -13,9 +13,9 @@ compiled program for any video length).
 from typing import NamedTuple
 
 import cv2
-import jax.numpy as jnp
 import numpy as np
 
+from .._jit import host_array
 from ._evaluate import _localize_batch
 from ._labels import PolarGrid, position_to_polar
 from ._network import CornerNet
@@ -81,7 +81,7 @@ def track(model: CornerNet, differences, *, window: int = 1, grid: PolarGrid = P
     for i in range(0, len(means), batch):
         chunk = means[i:i + batch]
         padded = np.concatenate([chunk, np.repeat(chunk[-1:], batch - len(chunk), 0)]) if len(chunk) < batch else chunk
-        pos, cov, heat = _localize_batch(model, jnp.asarray(padded), grid)
+        pos, cov, heat = _localize_batch(model, host_array(padded, np.float32), grid)
         parts.append((np.asarray(pos)[:len(chunk)], np.asarray(cov)[:len(chunk)], np.asarray(heat)[:len(chunk)]))
         if progress is not None:
             progress(min(i + batch, len(means)), len(means))
