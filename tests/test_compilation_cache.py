@@ -248,6 +248,11 @@ def test_scene_setup_is_transfers_and_a_fit_a_few_programs(small_setup):
     image = np.asarray(hj.render_point_lights(scene, camera, light, [0.05]))
     fit = lambda: hj.shadows.fit_lights(image, scene, camera, light + [[0.03, 0.0, 0.04]], steps=8, polish=False)
     assert lowered_programs(fit) <= 8
+    shadows = sh.ShadowScene.from_scene(scene, camera)
+    sh.render_lights(shadows, light, [0.05])
+    other = lambda: [sh.render_lights(shadows, light, [0.05], temperature=t, ambient=a) for t in (50.0, 80.0)
+                     for a in (0.0, 0.1)]
+    assert lowered_programs(other) == 0  # the temperature and the ambient are arguments of one program
 
 
 def test_a_shipped_corner_network_loads_and_tracks_in_a_few_programs():

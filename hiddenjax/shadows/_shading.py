@@ -111,11 +111,18 @@ def render_lights(shadows: ShadowScene, positions, intensities=None, temperature
     """Image `(H, W)` of point lights `(L, 3)` with intensities `(L,)` (W/sr), sigmoid shadows (eq. 4.11).
 
     `ambient` adds the thesis' term `g * max(0, l_g . n) * albedo/pi` for a fixed direction `l_g`.
+    One program per scene and number of lights: the numbers are its arguments, not constants in it.
     """
+    number = lambda v: jax.device_put(v) if isinstance(v, (int, float)) else v  # an argument, not a constant
+    return _render_lights(shadows, positions, intensities, number(temperature), number(ambient),
+                          jnp.asarray(ambient_direction, shadows.points.dtype))
+
+
+@filter_jit
+def _render_lights(shadows, positions, intensities, temperature, ambient, ambient_direction):
     images = light_images(shadows, positions, temperature)
     I = jnp.ones(images.shape[0]) if intensities is None else jnp.asarray(intensities, images.dtype)
     rows = I @ images
-    if ambient:
-        lg = jnp.asarray(ambient_direction, rows.dtype)
-        rows = rows + ambient * shadows.albedo / jnp.pi * jnp.maximum(shadows.normals @ lg, 0.0)
+    # without an ambient this adds exact zeros
+    rows = rows + ambient * shadows.albedo / jnp.pi * jnp.maximum(shadows.normals @ ambient_direction, 0.0)
     return shadows.rows_to_image(rows)
