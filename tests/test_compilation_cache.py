@@ -253,6 +253,7 @@ def test_scene_setup_is_transfers_and_a_fit_a_few_programs(small_setup):
     other = lambda: [sh.render_lights(shadows, light, [0.05], temperature=t, ambient=a) for t in (50.0, 80.0)
                      for a in (0.0, 0.1)]
     assert lowered_programs(other) == 0  # the temperature and the ambient are arguments of one program
+    assert lowered_programs(lambda: [sh.light_images(shadows, light, t) for t in (120.0, 240.0)]) <= 1
 
 
 def test_a_shipped_corner_network_loads_and_tracks_in_a_few_programs():

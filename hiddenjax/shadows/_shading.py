@@ -89,13 +89,23 @@ def shading(points, normals, albedo, light, intensity=1.0):
     return albedo / jnp.pi * intensity * jnp.maximum(cos, 0.0) / d2
 
 
-@filter_jit  # one program, also when called eagerly
 def light_images(shadows: ShadowScene, positions, temperature=DEFAULT_TEMPERATURE, **kwargs) -> Float[Array, "L P"]:
     """Per-light radiance `(L, P)` at unit intensity with sigmoid shadows (eq. 4.11-4.12).
 
     Lights are visited one after another (`lax.map`), so memory does not grow with their number.
-    `kwargs` go to `culled_log_visibility` (`tolerance`, `group`).
+    `kwargs` go to `culled_log_visibility` (`tolerance`, `group`). One program per scene, number of
+    lights and `kwargs`, also when called eagerly: the temperature is an argument of it.
     """
+    return _light_images(shadows, positions, _number(temperature), **kwargs)
+
+
+def _number(v):
+    """A Python number as a (weakly typed) JAX scalar: an argument of a program, not a constant in it."""
+    return jax.device_put(v) if isinstance(v, (int, float)) else v
+
+
+@filter_jit
+def _light_images(shadows: ShadowScene, positions, temperature, **kwargs):
     positions = jnp.atleast_2d(jnp.asarray(positions, shadows.points.dtype))
 
     def one(light):
@@ -113,8 +123,7 @@ def render_lights(shadows: ShadowScene, positions, intensities=None, temperature
     `ambient` adds the thesis' term `g * max(0, l_g . n) * albedo/pi` for a fixed direction `l_g`.
     One program per scene and number of lights: the numbers are its arguments, not constants in it.
     """
-    number = lambda v: jax.device_put(v) if isinstance(v, (int, float)) else v  # an argument, not a constant
-    return _render_lights(shadows, positions, intensities, number(temperature), number(ambient),
+    return _render_lights(shadows, positions, intensities, _number(temperature), _number(ambient),
                           jnp.asarray(ambient_direction, shadows.points.dtype))
 
 
