@@ -65,3 +65,13 @@ def host_array(x, dtype=None) -> jax.Array:
     shape and dtype when called eagerly; `np.asarray` then `jax.device_put` compiles nothing.
     """
     return jax.device_put(np.asarray(x, dtype))
+
+
+def traced_number(v):
+    """A Python number (`int`, `float`; not a bool) as a weakly typed JAX scalar, anything else as it is.
+
+    `eqx.filter_jit` keys its cache on non-array leaves: as a number, every new value would compile
+    the program again; as an array it is an argument of one program. `jax.device_put` keeps the
+    number weakly typed, as `jnp.asarray` does, without compiling a program (`stage`) to do it.
+    """
+    return jax.device_put(v) if type(v) in (int, float) else v

@@ -1,13 +1,12 @@
 """Pinhole camera: Mitsuba-compatible `look_at` and OpenCV `K, R, t` (docs/conventions.md, "Camera")."""
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from ._sampling import stratified_square
-from .._jit import filter_jit
+from .._jit import filter_jit, host_array
 
 
 def _normalize(v):
@@ -82,11 +81,9 @@ class Camera(eqx.Module):
     def _from_matrices(cls, K, R, t, width, height) -> "Camera":
         intr = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
         return cls(
-            # cast on the host and transferred: no JAX program (`jnp.asarray` of a numpy array
-            # compiles one, `stage`, per shape and dtype)
-            intrinsics=jax.device_put(np.asarray(intr, np.float32)),
-            rotation=jax.device_put(np.asarray(R, np.float32)),
-            translation=jax.device_put(np.asarray(t, np.float32)),
+            intrinsics=host_array(intr, np.float32),
+            rotation=host_array(R, np.float32),
+            translation=host_array(t, np.float32),
             width=int(width),
             height=int(height),
         )

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._jit import filter_jit, host_array
+from .._jit import filter_jit, host_array, traced_number
 from ..scene import Camera, Scene
 from ..transport._build import _observed_pixels
 from ..transport._embree import RayCaster, pixel_centre_hits
@@ -96,12 +96,7 @@ def light_images(shadows: ShadowScene, positions, temperature=DEFAULT_TEMPERATUR
     `kwargs` go to `culled_log_visibility` (`tolerance`, `group`). One program per scene, number of
     lights and `kwargs`, also when called eagerly: the temperature is an argument of it.
     """
-    return _light_images(shadows, positions, _number(temperature), **kwargs)
-
-
-def _number(v):
-    """A Python number as a (weakly typed) JAX scalar: an argument of a program, not a constant in it."""
-    return jax.device_put(v) if isinstance(v, (int, float)) else v
+    return _light_images(shadows, positions, traced_number(temperature), **kwargs)
 
 
 @filter_jit
@@ -123,7 +118,7 @@ def render_lights(shadows: ShadowScene, positions, intensities=None, temperature
     `ambient` adds the thesis' term `g * max(0, l_g . n) * albedo/pi` for a fixed direction `l_g`.
     One program per scene and number of lights: the numbers are its arguments, not constants in it.
     """
-    return _render_lights(shadows, positions, intensities, _number(temperature), _number(ambient),
+    return _render_lights(shadows, positions, intensities, traced_number(temperature), traced_number(ambient),
                           jnp.asarray(ambient_direction, shadows.points.dtype))
 
 

@@ -19,7 +19,7 @@ from .._qp import (NOT_POSITIVE_DEFINITE, SUCCESS, DampedNewton, ProjectedNewton
                    _kkt_residual, _solve, check, checks_on_host)
 from ..transport import TransportMatrix, TransportOperator
 from ._sharded import row_mesh_of, sharded_column_energy, sharded_gram, sharded_matvec, sharded_rmatvec
-from .._jit import filter_jit, jit
+from .._jit import filter_jit, jit, traced_number
 
 # Tuned on the teapot fixture (64x64 photo from the reference renderer) for tone-mapped SSIM:
 # within 0.03 of the best at both 16x32 and 32x64 grids. The linear metrics, dominated by the
@@ -592,12 +592,10 @@ def compiles_whole(Ts) -> bool:
 def _traced_weights(tree):
     """`tree` with its Python number leaves (a prior's weights, a solver's `rtol`, cue weights) as JAX scalars.
 
-    `eqx.filter_jit` keys its cache on non-array leaves: as numbers, every new weight would compile
-    the program again; as (weakly typed) arrays they are arguments of one program. Static fields
-    are not leaves, and booleans stay as they are. `jax.device_put` keeps a number weakly typed, as
-    `jnp.asarray` does, without compiling a program (`stage`) to do it.
+    Each becomes an argument of one program rather than a constant compiled into it (`traced_number`);
+    static fields are not leaves, and booleans stay as they are.
     """
-    return jax.tree_util.tree_map(lambda v: jax.device_put(v) if type(v) in (int, float) else v, tree)
+    return jax.tree_util.tree_map(traced_number, tree)
 
 
 def _checked_operator(built, prior):

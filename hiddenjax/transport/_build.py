@@ -7,6 +7,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from .._jit import host_array
 from ..scene import Camera, EnvGrid, Scene
 from ..scene._sampling import cosine_directions
 from ._direct import DirectLighting
@@ -95,8 +96,8 @@ def transport_matrix(
         rays += n_rays
     return TransportMatrix(
         A=jax.device_put(A),  # aliases the aligned buffer on CPU: no second copy of A
-        albedo=jax.device_put(np.asarray(plan.albedo(), np.float32)),  # cast on the host, transferred: no JAX program
-        pixels=jax.device_put(np.asarray(plan.pixels, np.int32)),
+        albedo=host_array(plan.albedo(), np.float32),
+        pixels=host_array(plan.pixels, np.int32),
         grid=grid,
         image_shape=(plan.H, plan.W),
         samples=int(samples),
