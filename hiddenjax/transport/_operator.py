@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import jax.experimental.sparse as jsparse
 import numpy as np
 import scipy.sparse as sp
 
@@ -42,8 +43,8 @@ class TransportOperator(PixelRows):
 
     Built by `transport_operator`. Not a pytree: its products run eagerly (outside `jit`) and
     return JAX arrays. The products with the stored sparse rows run where `products` says: scipy's
-    CSR products on the CPU, block by block on `threads` threads, or one segment sum on JAX's
-    default device (`products="device"`, chosen by `"auto"` on an accelerator). `solve_illumination`,
+    CSR products on the CPU, block by block on `threads` threads, or one compiled sparse product on
+    JAX's default device (`products="device"`, chosen by `"auto"` on an accelerator). `solve_illumination`,
     the CLI and `render` accept it wherever they accept a `TransportMatrix`.
 
     **Fields:** `grid`, `image_shape (H, W)`, `pixels (P,)`, `albedo (P,)` as in `TransportMatrix`;
@@ -96,8 +97,9 @@ class TransportOperator(PixelRows):
             if rows >= _GROUP_ROWS:
                 flush()
         flush()
-        self.products = _where_products(products, 12 * self.stored_entries)
-        self._on_device = None  # the stored rows as COO triplets on the device, made at the first product
+        self.products = _where_products(products, 16 * self.stored_entries)
+        self._on_device = None  # the stored rows as CSR and CSC on the device, made at the first product
+        self._energy = None  # diag(A^T A), made at the first call of column_energy
 
     # --- the rows --------------------------------------------------------------------------
 
@@ -177,8 +179,8 @@ class TransportOperator(PixelRows):
         out = self._W @ (self._Q @ x)
         x32 = x.astype(np.float32)  # the sparse rows are float32: a float64 x would copy them on every product
         if self.products == "device":
-            rows, cols, vals = self._device_rows()
-            out += np.asarray(_coo_product(vals, rows, cols, x32, len(self.pixels), True))
+            rows, columns, layout = self._device_rows()
+            out += np.asarray(_device_product(rows, x32, layout, len(self.pixels), False))
         stored = self.products == "cpu"
         for start, part in self._each_block(lambda start, C: (start, C @ x32), stored):
             out[start : start + len(part)] += part
@@ -192,27 +194,33 @@ class TransportOperator(PixelRows):
         out = self._Q.T @ (self._W.T @ y)
         y32 = y.astype(np.float32)
         if self.products == "device":
-            rows, cols, vals = self._device_rows()
-            out += np.asarray(_coo_product(vals, cols, rows, y32, self.grid.size, False))
+            rows, columns, layout = self._device_rows()
+            out += np.asarray(_device_product(columns, y32, layout, self.grid.size, True))
         stored = self.products == "cpu"
         for part in self._each_block(lambda start, C: C.T @ y32[start : start + C.shape[0]], stored):
             out += part
         return host_array(out, np.float32)
 
     def _device_rows(self):
-        """`(rows, cols, vals)`: the stored sparse rows as one COO triplet on JAX's default device.
+        """`(rows, columns, layout)`: each stored group `C_g` on JAX's default device in compressed
+        sparse rows twice, as `C_g` (`rows`) and as `C_g^T` (`columns`: the group's CSC), with
+        `layout` the groups' `(start, row count)`.
 
-        Made at the first product and kept (12 bytes per stored entry there, the CSR's 8 on the
-        host stay too): group by group, so the host never holds a second copy of the rows.
+        Made at the first product and kept: 16 bytes per stored entry there (the CSR's 8 on the host
+        stay too), group by group, so the host never holds a second copy of all the rows. Both
+        products are then row-parallel sparse products (cuSPARSE's CSR SpMM on an NVIDIA GPU, with
+        no atomic adds); a group's transpose costs the host one group's copy while it is made.
         """
         if self._on_device is None:
-            parts = []
-            for g in self._groups:
-                C = g.rows
-                row = np.repeat(np.arange(g.start, g.start + C.shape[0], dtype=np.int32), np.diff(C.indptr))
-                parts.append(tuple(host_array(a) for a in (row, C.indices.astype(np.int32), C.data)))
-            empty = (jnp.zeros(0, jnp.int32), jnp.zeros(0, jnp.int32), jnp.zeros(0, jnp.float32))
-            self._on_device = tuple(jnp.concatenate(p) for p in zip(*parts)) if parts else empty
+            rows, columns, layout = [], [], []
+            for g in sorted(self._groups, key=lambda g: g.start):
+                C, Ct = g.rows, g.rows.T.tocsr()
+                rows.append(tuple(host_array(a) for a in (C.data, C.indices.astype(np.int32),
+                                                           C.indptr.astype(np.int32))))
+                columns.append(tuple(host_array(a) for a in (Ct.data, Ct.indices.astype(np.int32),
+                                                              Ct.indptr.astype(np.int32))))
+                layout.append((g.start, C.shape[0]))
+            self._on_device = (tuple(rows), tuple(columns), tuple(layout))
         return self._on_device
 
     def column_energy(self):
@@ -220,8 +228,14 @@ class TransportOperator(PixelRows):
 
         From the parts of `A = W Q + C`, never a dense row: `sum_p A_pn^2 = (Q^T W^T W Q)_nn +
         2 sum_k Q_kn (C^T W)_nk + sum_p C_pn^2`, in float64 (the sparse rows' squares summed by column,
-        `C^T W` one sparse product by `W`'s `K` dense columns per block).
+        `C^T W` one sparse product by `W`'s `K` dense columns per block). Computed once and kept
+        (the matrix-free solve asks for it twice: the weights' scale and the preconditioner).
         """
+        if self._energy is None:
+            self._energy = self._column_energy()
+        return self._energy
+
+    def _column_energy(self):
         W, Q = self._W, self._Q
         out = np.einsum("kn,kl,ln->n", Q, (W.T @ W).toarray(), Q) if self._low_rank else np.zeros(self.grid.size)
         for start, block in self._sparse_blocks():
@@ -299,12 +313,24 @@ class TransportOperator(PixelRows):
                 "recomputed per product)")
 
 
-@jit(static_argnames=("n", "into_sorted"))
-def _coo_product(vals, into, read, v, n, into_sorted):
-    """`out[i] = sum_{k: into_k = i} vals_k v[read_k]` for `i < n`: `A v` with `(into, read) = (rows, cols)`,
-    `A^T v` with `(cols, rows)`. One gather and one segment sum (atomic adds on a GPU)."""
-    terms = vals.reshape((-1,) + (1,) * (v.ndim - 1)) * v[read]
-    return jax.ops.segment_sum(terms, into, num_segments=n, indices_are_sorted=into_sorted)
+@jit(static_argnames=("layout", "n", "transpose"))
+def _device_product(parts, v, layout, n, transpose):
+    """The stored rows' product: `out[start_g:start_g + r_g] = C_g v` for every group `g`
+    (`transpose=False`, `parts` the groups' CSR `(data, indices, indptr)`, `v (N[, C])`), or
+    `out = sum_g C_g^T v[start_g:start_g + r_g]` (`transpose=True`, `parts` the groups' transposes
+    `C_g^T` in CSR, `v (P[, C])`); `n` the rows of `out`, `layout` the groups' `(start, r)`.
+    `jax.experimental.sparse.csr_matmat`: cuSPARSE's SpMM on an NVIDIA GPU, a segment sum elsewhere."""
+    columns = v.reshape(v.shape[0], -1)
+    out = jnp.zeros((n, columns.shape[1]), v.dtype)
+    width = v.shape[0]
+    for (data, indices, indptr), (start, r) in zip(parts, layout):
+        if transpose:
+            C = jsparse.CSR((data, indices, indptr), shape=(n, r))
+            out = out + jsparse.csr_matmat(C, columns[start : start + r])
+        else:
+            C = jsparse.CSR((data, indices, indptr), shape=(r, width))
+            out = out.at[start : start + r].add(jsparse.csr_matmat(C, columns))
+    return out.reshape((n,) + v.shape[1:])
 
 
 class _Group(NamedTuple):
@@ -340,9 +366,10 @@ def transport_operator(
     setup does not fit is refused before anything is allocated; `cache` the bytes of sparse rows
     to hold (default: what the budget leaves), the rest recomputed per product; `products` where
     the products with the stored rows run: `"cpu"` (scipy, `threads` blocks at a time), `"device"`
-    (JAX's default device: on a GPU one segment sum of the rows held there, 12 bytes per stored
-    entry) or `"auto"` (the device when it is an accelerator with room for the rows, else the CPU:
-    on the CPU scipy's products are 4-17x faster than XLA's segment sums).
+    (JAX's default device: the rows held there in compressed rows and columns, 16 bytes per stored
+    entry, multiplied by cuSPARSE on an NVIDIA GPU) or `"auto"` (the device when it is an
+    accelerator with room for the rows, else the CPU: on the CPU scipy's products are 4-17x faster
+    than XLA's).
 
     **Returns:** a `TransportOperator`.
     """
@@ -359,8 +386,8 @@ def transport_operator(
 
 
 def _where_products(products: str, nbytes: int) -> str:
-    """`"auto"`: `"device"` on an accelerator whose free memory holds twice `nbytes` (the rows and
-    their concatenation), else `"cpu"`."""
+    """`"auto"`: `"device"` on an accelerator whose free memory holds twice `nbytes` (the rows, and
+    room for the products and the solver beside them), else `"cpu"`."""
     if products != "auto":
         return products
     device = jax.devices()[0]
