@@ -12,6 +12,8 @@ with the default prior (the exact solve when `16 N^2` bytes fit `--memory`, else
 projected Newton-CG from the 32x64 solution). Quality against the truth on the finest grid
 (each map spread over its cells): `env_errors` over the upper hemisphere, the sun's direction
 (the brightest cell's centre against the panorama's sun) and the power within 3 degrees of it.
+Each grid also times one `A^T (A x)` of an RGB map where the operator's products run, and on an
+accelerator with scipy's CPU products as well.
 Beside them, in the same run: the dense `transport_matrix` and its solve where it fits, and the
 sharded solve (`examples/distributed_solve.py`, 128x128, 32x64) on 1 and 4 CPU devices and in 2
 processes. Writes `scale.png` (the maps) and `results.json`.
