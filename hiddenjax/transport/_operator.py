@@ -211,16 +211,10 @@ class TransportOperator(PixelRows):
         products are then row-parallel sparse products (cuSPARSE's CSR SpMM on an NVIDIA GPU, with
         no atomic adds); a group's transpose costs the host one group's copy while it is made.
         """
-        if self._on_device is None:
-            rows, columns, layout = [], [], []
-            for g in sorted(self._groups, key=lambda g: g.start):
-                C, Ct = g.rows, g.rows.T.tocsr()
-                rows.append(tuple(host_array(a) for a in (C.data, C.indices.astype(np.int32),
-                                                           C.indptr.astype(np.int32))))
-                columns.append(tuple(host_array(a) for a in (Ct.data, Ct.indices.astype(np.int32),
-                                                              Ct.indptr.astype(np.int32))))
-                layout.append((g.start, C.shape[0]))
-            self._on_device = (tuple(rows), tuple(columns), tuple(layout))
+        if self._on_device is None:  # the groups are in row order (the chunks are built in order)
+            rows = tuple(_csr_on_device(g.rows) for g in self._groups)
+            columns = tuple(_csr_on_device(g.rows.T.tocsr()) for g in self._groups)
+            self._on_device = (rows, columns, tuple((g.start, g.rows.shape[0]) for g in self._groups))
         return self._on_device
 
     def column_energy(self):
@@ -311,6 +305,11 @@ class TransportOperator(PixelRows):
         return (f"TransportOperator({P} pixels x {N} env pixels, grid {self.grid.shape}, holds "
                 f"{format_bytes(self.nbytes)} of {format_bytes(self.memory)}, {len(self._recompute)} chunks "
                 "recomputed per product)")
+
+
+def _csr_on_device(C: sp.csr_matrix) -> tuple:
+    """`(data, indices, indptr)` of `C` on JAX's default device, the indices int32 (cuSPARSE's)."""
+    return host_array(C.data), host_array(C.indices, np.int32), host_array(C.indptr, np.int32)
 
 
 def _by_columns(C: sp.spmatrix, v: np.ndarray) -> np.ndarray:
