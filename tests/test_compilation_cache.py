@@ -7,6 +7,7 @@ import sys
 import warnings
 from pathlib import Path
 
+import jax.numpy as jnp
 import pytest
 
 import hiddenjax as hj
@@ -147,6 +148,26 @@ def test_a_solve_and_the_cues_are_a_few_programs_compiled_once_for_every_weight(
     assert again == 0, again
     cues = lowered_programs(lambda: [np.asarray(hj.cues.leverage(T, ridge=r)) for r in (1e-4, 1e-3)])
     assert cues <= 2, cues
+
+
+def test_a_later_solve_on_an_operator_compiles_nothing(small_setup):
+    """On a `TransportOperator` (products on the host) the solve runs eagerly around compiled steps: a
+    reweighting loop left to `fori_loop` was traced and compiled again for every photo."""
+    import numpy as np
+    grid = hj.EnvGrid(4, 8)
+    op = hj.transport_operator(small_setup.scene, small_setup.camera, grid, samples=4, pixel_samples=1,
+                               progress=False)
+    T = hj.transport_matrix(small_setup.scene, small_setup.camera, grid, samples=4, pixel_samples=1, progress=False)
+    photo = np.asarray(hj.render(T, grid.downsample(hj.scenes.procedural_sky(32, 64))))
+    first = hj.solve_illumination(op, photo)
+    hdr = lambda floor: hj.solvers.L2Prior(smooth=0.5, ridge=1e-3, floor=floor, reweight=3, threshold=0.02, adapt=0.4)
+    hj.solve_illumination(op, photo, prior=hdr(0.1))
+    again = lowered_programs(lambda: [np.asarray(hj.solve_illumination(op, photo * s, prior=p).env)
+                                      for s in (0.5, 2.0) for p in (None, hdr(0.3))])
+    assert again == 0, again
+    # the same map as the dense matrix's compiled solve (the operator's rows are the matrix's)
+    dense = hj.solve_illumination(T, photo)
+    assert float(jnp.max(jnp.abs(first.env - dense.env)) / jnp.max(dense.env)) < 1e-4
 
 
 SOLVE_PROBE = """

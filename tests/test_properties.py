@@ -66,9 +66,11 @@ def test_render_is_linear_in_the_map(x, z, a, b):
 
 
 @SETTINGS
-@given(P=st.integers(3, 30), N=st.integers(2, 12), seed=st.integers(0, 2**16), ridge=finite(1e-3, 1.0))
+@given(P=st.integers(3, 30), N=st.sampled_from([2, 3, 5, 8, 12]), seed=st.integers(0, 2**16), ridge=finite(1e-3, 1.0))
 def test_nonneg_solver_meets_the_kkt_conditions(P, N, seed, ridge):
-    """`x >= 0`, `B x - c >= -tol`, and `x_i (B x - c)_i ~ 0` for random least-squares problems."""
+    """`x >= 0`, `B x - c >= -tol`, and `x_i (B x - c)_i ~ 0` for random least-squares problems.
+
+    The solver is one program per size `N`: five sizes, from 2 to 12, rather than every one of them."""
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(P, N)).astype(np.float32)
     y = rng.normal(size=P).astype(np.float32)

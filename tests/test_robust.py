@@ -236,9 +236,10 @@ def test_gauss_newton_step_equals_finite_difference_step_and_vmaps(problem):
     noise = float(one.noise)
     dense = _fd_step(model, theta, envs[0].reshape(-1), model.image_to_rows(images[0]), unc, noise)
     assert relrmse(one.step, dense) < 0.03, (np.asarray(one.step), dense)
-    batched = jax.vmap(lambda e, im: step(model, theta, e, im, unc, noise=noise).step)(envs, images)
+    # Each image's own noise (the default) in both: the batch compiles one program more, not two.
+    batched = jax.vmap(lambda e, im: step(model, theta, e, im, unc).step)(envs, images)
     assert relrmse(batched[0], one.step) < 1e-4
-    assert relrmse(batched[1], step(model, theta, envs[1], images[1], unc, noise=noise).step) < 1e-4
+    assert relrmse(batched[1], step(model, theta, envs[1], images[1], unc).step) < 1e-4
     with pytest.raises(ValueError, match="does not match the model's image"):
         hj.solvers.gauss_newton_step(model, theta, envs[0], images[0][:8], unc)
 
@@ -330,13 +331,15 @@ def test_scene_solve_shares_the_pose_across_lightings_and_never_increases_the_ob
     other = np.roll(sky, sky.shape[1] // 3, axis=1)  # the same sky turned by 120 degrees
     images = [hj.reference_render(scene, camera, s, samples=64, pixel_samples=8, seed=1) for s in (sky, other)]
     embree = lambda th: _embree(setup, model, th)  # 4 footprint samples
-    fit = hj.solvers.solve_scene_illumination(model, images, unc, steps=3, transport=embree, progress=False)
+    # two steps: the second is accepted after one halving (rates 1, 1/2; a third finds no lower objective)
+    fit = hj.solvers.solve_scene_illumination(model, images, unc, steps=2, transport=embree, progress=False)
     assert fit.env.shape == (2, *grid.shape, 3)
     separate = [hj.solve_illumination(embree(fit.theta), im, prior="l2").env for im in images]
     assert relrmse(fit.env, jnp.stack(separate)) < 1e-4  # the stacked solve un-stacks to one map per lighting
     accepted = np.asarray(fit.rate_history) > 0
     objective = np.asarray(fit.objective_history)
     assert accepted[0] and np.all(np.diff(objective)[accepted] < 0), objective
+    assert np.any(np.asarray(fit.rate_history) < 1), np.asarray(fit.rate_history)  # a step was halved
     error = lambda th: float(np.linalg.norm(unc.whiten(th, true)))  # in standard deviations
     assert error(fit.theta) < 0.8 * error(SceneParams.zeros()), (error(fit.theta), str(fit.theta), str(true))
     with pytest.raises(ValueError, match="one shape"):

@@ -193,6 +193,9 @@ class L2Prior(Prior):
         if n == 0:
             return start + ((_solve(op.B, op.factor, c, solver, nonneg) if last else None),)
 
+        if not any(isinstance(a, jax.core.Tracer) for a in (op.B, c)):  # eagerly (an operator's host-driven solve)
+            return _reweighted_stepwise(self, op, c, nonneg, solver, n + 1 if last else n, start)
+
         def step(k, state):
             # Every solve is this one call, so a program holds one copy of the solver (a Python loop
             # inlined n + 1 copies into a caller's jit, and each was compiled)
@@ -655,6 +658,39 @@ def _l2_start(op, ys):
 def _l2_after_solve(op, gram, c, k, x, state):
     with checks_on_host():
         return op.prior.after_solve(op, gram, c, k, x, state)
+
+
+class _NormalEquations(eqx.Module):
+    """What a prior's reweighting reads of an operator: `B`, its factor, the weights, the grid and the prior.
+
+    A pytree of arrays that a compiled step takes as an argument, where an operator of host-driven
+    products (`TransportOperator` views) is not one."""
+
+    prior: Any
+    B: Array
+    factor: Array
+    smooth: Any
+    ridge: Any
+    grid: Any = eqx.field(static=True)
+
+    @property
+    def views(self):
+        return (self,)
+
+
+def _reweighted_stepwise(prior, op, c, nonneg, solver, solves, start):
+    """`L2Prior.reweighted` called eagerly: its `solves` one at a time, each the solver's own program
+    (`_solve`) with the steps between them one program (`_l2_after_solve`) for every `k` and weight.
+
+    A `fori_loop` called eagerly traces and compiles its body again on every call (a new closure
+    each time): a solve on a `TransportOperator` compiled that loop anew for each photo."""
+    normal = _traced_weights(_NormalEquations(prior, op.B, op.factor, op.smooth, op.ridge, op.views[0].grid))
+    state, gram, out = start[:5], op.B - start[2], None
+    for k in range(solves):
+        out = _solve(*state[:2], state[3], solver, nonneg)
+        if k < prior.passes():
+            state = _l2_after_solve(normal, gram, c, np.int32(k), out[0], state)
+    return state + (out,)
 
 
 @filter_jit

@@ -50,7 +50,7 @@ from ._illumination import (
 )
 from ._scene_model import SceneModel
 from ._scene_params import SceneParams, SceneUncertainty
-from .._jit import filter_jit
+from .._jit import filter_jit, traced_number
 
 
 def model_average(source, thetas: SceneParams, weights=None, smooth=DEFAULT_SMOOTH, ridge=DEFAULT_RIDGE, *,
@@ -283,6 +283,10 @@ def gauss_newton_step(model: SceneModel, theta: SceneParams, env, image, uncerta
     return GaussNewtonStep(new, du, r @ r, u @ u, jnp.sqrt(s2), J)
 
 
+_jitted_step = filter_jit(gauss_newton_step)
+"""`gauss_newton_step` compiled once per process (a `filter_jit` made per call would trace it again each time)."""
+
+
 def transport_jacobian(transport: Callable[[SceneParams], TransportMatrix], theta: SceneParams, x,
                        uncertainty: SceneUncertainty, step: float = 0.5) -> Float[Array, "M n"]:
     """The whitened `T_x (P*C, n)` of eq. A.10 by central differences of a matrix builder.
@@ -392,7 +396,7 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     mean = SceneParams.zeros() if mean is None else mean
     theta = mean if theta is None else theta
     build = model.transport if transport is None else transport
-    step_fn = filter_jit(gauss_newton_step)
+    noise_arg = traced_number(noise)  # a number as an argument of the program, not a key of its cache
 
     def fit(th):  # the solve at th: (operator, solution, A x, ||y - A x||^2, data + regularizer)
         op = IlluminationOperator.build(build(th), smooth, ridge)
@@ -413,8 +417,8 @@ def solve_scene_illumination(model: SceneModel, image, uncertainty: SceneUncerta
     for _ in bar:
         J = None if difference is None else transport_jacobian(
             build, theta, sol.env.reshape((op.B.shape[0],) + sol.env.shape[2:]), uncertainty, difference)
-        out = step_fn(model, theta, sol.env, y, uncertainty, mean=mean, noise=noise, learning_rate=0.0,
-                      rendered=Ax, operator=op if refit else None, jacobian=J)
+        out = _jitted_step(model, theta, sol.env, y, uncertainty, mean=mean, noise=noise_arg, learning_rate=0.0,
+                           rendered=Ax, operator=op if refit else None, jacobian=J)
         s2 = float(out.noise) ** 2 if s2 is None else s2  # fixed from the first step: objectives compare
         f = value(total, theta, s2)
         thetas.append(theta)
