@@ -148,9 +148,9 @@ def _solvers(solves, priors, T, T2):
     if "albedo" in solves:
         def albedo(photo, second):
             sol = hj.solvers.solve_albedo_illumination(T, np.stack([photo, second["albedo"]]))
-            history = np.asarray(sol.objective_history, np.float64)
-            change = abs(history[-1] - history[-2]) / max(abs(history[-2]), 1e-30)
-            return np.asarray(sol.env[0]), bool(change < 1e-3 and np.isfinite(history[-1])), int(sol.steps), change
+            history, k = np.asarray(sol.objective_history, np.float64), int(sol.steps)
+            change = abs(history[k - 1] - history[k - 2]) / max(abs(history[k - 2]), 1e-30)  # the last step's
+            return np.asarray(sol.env[0]), bool(sol.converged and np.isfinite(history[-1])), k, change
         out["albedo", "l2"] = albedo
     return out
 
