@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.optimize
+from conftest import relrmse
 
 import hiddenjax as hj
 from hiddenjax.solvers import DampedNewton, ProjectedNewton
@@ -260,7 +261,7 @@ def test_joint_albedo_converges_and_beats_assuming_white(textured_plane):
     and its early stop is a worse map than the converged one."""
     T, albedo_true, photos, truths = textured_plane
     sol = hj.solvers.solve_albedo_illumination(T, photos)
-    assert bool(sol.converged) and int(sol.steps) < 100, int(sol.steps)  # measured: 20 iterations
+    assert bool(sol.converged) and int(sol.steps) < 100, int(sol.steps)  # measured: 18 iterations
     m = T.mask & (albedo_true > 0)
     rho = np.asarray(sol.albedo)
     rmse = np.sqrt(np.mean((rho[m] - albedo_true[m]) ** 2))
@@ -270,20 +271,33 @@ def test_joint_albedo_converges_and_beats_assuming_white(textured_plane):
     assert np.all(np.diff(history) <= 1e-6 * history[0])  # each alternating step lowers the objective
     joint = [hj.metrics.env_errors(np.asarray(sol.env[k]), truths[k]) for k in range(3)]
     base = [hj.metrics.env_errors(np.asarray(hj.solve_illumination(T, photos[k], prior="l2").env), truths[k]) for k in range(3)]
-    for j, b in zip(joint, base):  # measured relrmse 0.726/0.775/0.777 against 0.770/0.805/0.891
+    for j, b in zip(joint, base):  # measured relrmse 0.727/0.775/0.775 against 0.770/0.805/0.891
         assert j["relrmse"] < b["relrmse"], (joint, base)
-    # Mean linear SSIM 0.328 against 0.243, tone-mapped 0.362 against 0.243.
+    # Mean linear SSIM 0.329 against 0.243, tone-mapped 0.363 against 0.243.
     for key in ("ssim", "ssim_tm"):
         assert np.mean([j[key] for j in joint]) > np.mean([b[key] for b in base]), (key, joint, base)
     # The thesis' objective: still moving after 20 iterations (relative change 4.6e-3), its maps worse
     # (tone-mapped SSIM 0.265 on average) than the converged solve's.
-    thesis = hj.solvers.solve_albedo_illumination(T, photos, albedo_ridge=0.0, max_steps=20)
+    thesis = hj.solvers.solve_albedo_illumination(T, photos, albedo_weight=1e-3, albedo_ridge=0.0, max_steps=20)
     assert not bool(thesis.converged)
     early = [hj.metrics.env_errors(np.asarray(thesis.env[k]), truths[k])["ssim_tm"] for k in range(3)]
     assert np.mean(early) < np.mean([j["ssim_tm"] for j in joint]), (early, joint)
     for bad in (-0.1, float("nan")):
         with pytest.raises(ValueError, match="albedo_ridge must be"):
             hj.solvers.solve_albedo_illumination(T, photos, albedo_ridge=bad)
+
+
+def test_joint_albedo_is_the_same_at_any_exposure(textured_plane):
+    """The solve runs on the photos divided by their RMS scale: at exposures of 1e-4 and 1e4 the albedo and
+    the maps (over the exposure) are the exposure-1 solve's. (A weight not relative to the data, as the
+    thesis' `||G rho||^2`, outweighed the data by 1e8 at 1e-4: a map with a tone-mapped SSIM of 0.02.)"""
+    T, _, photos, _ = textured_plane
+    solve = lambda e: hj.solvers.solve_albedo_illumination(T, e * photos, max_steps=8, tol=0.0)
+    one = solve(1.0)
+    for e in (1e-4, 1e4):
+        other = solve(e)
+        assert float(jnp.max(jnp.abs(other.albedo - one.albedo))) < 1e-3
+        assert relrmse(other.env / e, one.env) < 1e-3, (e, relrmse(other.env / e, one.env))
 
 
 def test_albedo_term_is_float32_stable(textured_plane):
