@@ -175,7 +175,8 @@ def solve_albedo_illumination(
         d = jnp.sum(AX * AX, axis=1)
         rhs = jnp.sum(Ys[v].T * AX, axis=1) + las[v]  # eq. 5.6, with the anchor's pull towards 1
         if not uses_G:  # a diagonal system: closed form per pixel (an unlit pixel without anchor keeps rho)
-            return jnp.where(d + las[v] > 0, rhs / jnp.where(d + las[v] > 0, d + las[v], 1.0), rho0)
+            diagonal = d + las[v]
+            return jnp.where(diagonal > 0, rhs / jnp.where(diagonal > 0, diagonal, 1.0), rho0)
         op = lx.FunctionLinearOperator(lambda r: lp * Gt(v, G(v, r)) + (d + las[v]) * r,
                                        jax.ShapeDtypeStruct(rho0.shape, dtype), lx.positive_semidefinite_tag)
         solver = lx.CG(rtol=1e-6, atol=1e-9, max_steps=500)

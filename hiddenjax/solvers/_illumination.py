@@ -640,13 +640,20 @@ def _solve_l2_stepwise(op, ys, nonneg, solver):
     prior = op.prior
     prior.check_signed(nonneg)
     c, R0, gram = _l2_start(op, ys)
-    state = (op.B, op.factor, R0, c, op.smooth)
-    n = prior.passes()
-    for k in range(n + 1):
-        out = _solve(*state[:2], state[3], solver, nonneg)
-        if k < n:
-            state = _l2_after_solve(op, gram, c, np.int32(k), out[0], state)  # an argument: one program for every k
+    state, out = _solves_one_at_a_time(op, gram, c, solver, nonneg, prior.passes() + 1,
+                                       (op.B, op.factor, R0, c, op.smooth))
     return _l2_solution(op, c, state, ys, out, nonneg)
+
+
+def _solves_one_at_a_time(op, gram, c, solver, nonneg, solves, state):
+    """`(state, last _solve output)` after `solves` solves of the prior's reweighting, each a call of
+    `_solve`, the steps between them `_l2_after_solve` (`k` an argument: one program for every `k`)."""
+    out = None
+    for k in range(solves):
+        out = _solve(*state[:2], state[3], solver, nonneg)
+        if k < op.prior.passes():
+            state = _l2_after_solve(op, gram, c, np.int32(k), out[0], state)
+    return state, out
 
 
 @filter_jit
@@ -685,11 +692,7 @@ def _reweighted_stepwise(prior, op, c, nonneg, solver, solves, start):
     A `fori_loop` called eagerly traces and compiles its body again on every call (a new closure
     each time): a solve on a `TransportOperator` compiled that loop anew for each photo."""
     normal = _traced_weights(_NormalEquations(prior, op.B, op.factor, op.smooth, op.ridge, op.views[0].grid))
-    state, gram, out = start[:5], op.B - start[2], None
-    for k in range(solves):
-        out = _solve(*state[:2], state[3], solver, nonneg)
-        if k < prior.passes():
-            state = _l2_after_solve(normal, gram, c, np.int32(k), out[0], state)
+    state, out = _solves_one_at_a_time(normal, op.B - start[2], c, solver, nonneg, solves, start)
     return state + (out,)
 
 
