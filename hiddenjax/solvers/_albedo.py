@@ -5,7 +5,9 @@ alternate damped steps (eq. 5.7, `gamma = 0.9`) towards
 
 - `x_l*`: the exact non-negative minimizer of eq. 5.3 with `A = diag(rho) A'` (the normal
   equations of eq. 5.5 on the free set, `ProjectedNewton`). The thesis damps towards the clipped
-  unconstrained solution instead; that step can raise the objective, this one cannot (convexity);
+  unconstrained solution instead; that step can raise the objective, this one cannot (convexity) but
+  for the map solve's own error (it meets a KKT tolerance in float32, which near the joint optimum
+  outweighs what a step gains), so it too is kept only where it lowers the objective;
 - `rho*`: `(lp G^T G + la I + sum_l diag(A' x_l)^2) rho = sum_l y_l * A' x_l + la` (eq. 5.6 with
   the anchor below) with `G = (A'^T A' + lr I)^-1 A'^T`, solved matrix-free by conjugate gradients
   (`G^T G` is `P x P`), clipped to `[rho_min, 1]`; the damped step is kept only where it lowers
@@ -19,7 +21,8 @@ should explain, the objective's minimum is a worse map than the early iterates, 
 alternation had to be stopped early (as the thesis does, after 3-20 iterations). With it the
 alternation converges, to a better map than the early stop's (docs: benchmarks, "Robustness").
 The solve runs on the photos divided by their RMS scale `s` (maps and objective scaled back):
-with the default weights it is the same at every exposure.
+with the default weights it is the same at every exposure. Every kept step lowers the objective, so
+it stops at a relative change of `tol`, or once no step lowers it (the precision of float32).
 
 Several viewpoints share the env maps; each view has its own albedo `rho_v` and its own `G_v`.
 """
@@ -31,6 +34,7 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._jit import filter_jit, traced_number
 from .._qp import ProjectedNewton, _cholesky, _solve
 from ._illumination import (
     DEFAULT_RIDGE,
@@ -103,9 +107,10 @@ def solve_albedo_illumination(
     starts, as the thesis does, from ones.
 
     Measured (teapot at 64x64 pixels, 16x32 grid, two lightings: a panorama and the same turned by
-    90 degrees, the true albedo the model's; the seven development panoramas): converged in 33-49
-    iterations, 7-9 s on 2 cores; the first map's tone-mapped SSIM 0.551 on average against 0.327
-    for the thesis' objective stopped at 20 iterations. On a checker-textured plane (albedo
+    90 degrees, the true albedo the model's; the seven development panoramas): converged in 31-53
+    iterations, 1.8-3.3 s on 2 cores once compiled (one program per shapes; about 3 s to compile);
+    the first map's tone-mapped SSIM 0.550 on average against 0.327 for the thesis' objective
+    stopped at 20 iterations. On a checker-textured plane (albedo
     0.35 / 0.9, the model white; `tests/test_solvers.py`): converged in 18, albedo RMSE 0.110
     (0.053 after the best global scale, which the anchor fixes near 1), and every map nearer the
     truth than assuming white.
@@ -121,15 +126,27 @@ def solve_albedo_illumination(
                          f"got {albedo_ridge}")
     Ys, shapes = [], set()
     for t, stack in zip(Ts, stacks):
-        stack = jnp.asarray(stack)
+        traced = isinstance(stack, jax.core.Tracer)
+        xp = jnp if traced else np  # photos on the host are arranged there: no eager JAX programs
+        stack = stack if traced else np.asarray(stack)
         if stack.ndim not in (3, 4):
             raise ValueError(f"images must be a stack (L, H, W) or (L, H, W, C), got shape {stack.shape}")
-        Y = jnp.stack([_check_image(t, im) for im in stack])  # (L, P[, C])
+        Y = xp.stack([_check_image(t, im) for im in stack])  # (L, P[, C])
         shapes.add((stack.shape[0],) + stack.shape[3:])
-        Ys.append(jnp.moveaxis(Y, 1, -1).reshape(-1, Y.shape[1]))  # (L*C, P): each channel a lighting
+        Ys.append(xp.moveaxis(Y, 1, -1).reshape(-1, Y.shape[1]))  # (L*C, P): each channel a lighting
     if len(shapes) != 1:
         raise ValueError(f"every view needs the same number of images and channels, got {sorted(shapes)}")
     (lights,) = shapes
+    uses_G = not (isinstance(albedo_weight, (int, float)) and albedo_weight == 0)
+    weights = tuple(traced_number(w) for w in (smooth, ridge, albedo_weight, albedo_ridge, gamma, tol, rho_min))
+    return _alternate(tuple(Ts), tuple(Ys), lights, weights, max_steps, uses_G, absolute)
+
+
+@filter_jit
+def _alternate(Ts, Ys, lights: tuple, weights, max_steps: int, uses_G: bool, absolute: bool):
+    """The alternation of `solve_albedo_illumination` on checked photo rows `Ys` (`(L*C, P_v)` per view,
+    `lights = (L[, C])`): one program per shapes and switches, the weights its arguments."""
+    smooth, ridge, albedo_weight, albedo_ridge, gamma, tol, rho_min = weights
     A1s = [t.unit_albedo for t in Ts]
     dtype, N = A1s[0].dtype, Ts[0].grid.size
     scale = 1.0 if absolute else jnp.mean(sum(jnp.sum(a * a, axis=0) for a in A1s))
@@ -139,7 +156,7 @@ def solve_albedo_illumination(
     # and the maps and objective are scaled back.
     s = jnp.sqrt(sum(jnp.sum(y**2) for y in Ys) / sum(y.shape[1] for y in Ys))  # RMS of sum_l y_l(p)^2
     s = jnp.where(s > 0, s, 1.0).astype(dtype)
-    Ys = [y / s for y in Ys]
+    Ys = [jnp.asarray(y, dtype) / s for y in Ys]
     lp = lp / s**2  # ||G rho||^2 keeps its weight in the photos' units (eq. 5.4 as the thesis weighs it)
     # the anchor's weight per view: a fraction of the data's own weight per pixel, sum_l y_l(p)^2 on average
     las = [albedo_ridge * jnp.mean(jnp.sum(y**2, axis=0)) for y in Ys]
@@ -147,7 +164,6 @@ def solve_albedo_illumination(
     # G = (A'^T A' + lr I)^-1 A'^T through the thin SVD A' = U S V^T: G = V S (S^2 + lr)^-1 U^T.
     # Through a Cholesky factor of A'^T A' + lr I (the normal equations) G^T G squares a
     # condition number near 1e8 at the default ridge, and float32 loses it entirely.
-    uses_G = not (isinstance(albedo_weight, (int, float)) and albedo_weight == 0)
     svds = [jnp.linalg.svd(a, full_matrices=False) for a in A1s] if uses_G else None
     gain = lambda v: svds[v][1] / (svds[v][1] ** 2 + lr)
     G = lambda v, rho: svds[v][2].T @ (gain(v) * (svds[v][0].T @ rho))  # (P_v,) -> (N,)
@@ -182,29 +198,31 @@ def solve_albedo_illumination(
         solver = lx.CG(rtol=1e-6, atol=1e-9, max_steps=500)
         return lx.linear_solve(op, rhs, solver, options={"y0": rho0}, throw=False).value
 
-    def body(state, _):
-        rhos, X, prev, done, steps = state
-        X_new = X + gamma * (x_star(rhos) - X)  # feasible: a convex combination of x >= 0 points
+    def body(state):
+        rhos, X, prev, _, steps, history = state
+        X_try = X + gamma * (x_star(rhos) - X)  # feasible: a convex combination of x >= 0 points
+        # kept where it lowers the objective: the map solve meets its KKT tolerance, not the optimum
+        # exactly, and near the joint optimum its float32 error outweighs what the step gains
+        X_new = jnp.where(objective(rhos, X_try) < prev, X_try, X)
         new_rhos = []
         for v, rho in enumerate(rhos):  # given X the views decouple: accept each view's step alone
             rho_try = jnp.clip(rho + gamma * (rho_star(v, X_new, rho) - rho), rho_min, 1.0)
             better = view_objective(v, rho_try, X_new) < view_objective(v, rho, X_new)
             new_rhos.append(jnp.where(better, rho_try, rho))
         f = objective(new_rhos, X_new)
-        keep = lambda old, new: jnp.where(done, old, new)
-        new_rhos = [keep(a, b) for a, b in zip(rhos, new_rhos)]
-        X_new, f = keep(X, X_new), keep(prev, f)
-        converged = done | (jnp.abs(prev - f) <= tol * jnp.abs(prev))
-        return (new_rhos, X_new, f, converged, steps + (~done)), f
+        converged = jnp.abs(prev - f) <= tol * jnp.abs(prev)
+        return new_rhos, X_new, f, converged, steps + 1, history.at[steps].set(f)
 
     rhos0 = [jnp.ones(a.shape[0], dtype) for a in A1s]
     X0 = jnp.ones((Ys[0].shape[0], N), dtype)
-    init = (rhos0, X0, objective(rhos0, X0), jnp.array(False), jnp.array(0))
-    (rhos, X, _, converged, steps), history = jax.lax.scan(body, init, None, length=max_steps)
-    X, history = X * s, history * s**2
-    channels = lights[1:]
-    env = X.reshape(lights + Ts[0].grid.shape)
-    if channels:
+    f0 = objective(rhos0, X0)
+    # A while loop: the iterations stop once converged (a scan would compute all max_steps).
+    init = (rhos0, X0, f0, jnp.array(False), jnp.array(0), jnp.zeros(max_steps, f0.dtype))
+    rhos, X, f, converged, steps, history = jax.lax.while_loop(
+        lambda state: ~state[3] & (state[4] < max_steps), body, init)
+    history = jnp.where(jnp.arange(max_steps) < steps, history, f)  # the last value repeats after the stop
+    env = (X * s).reshape(lights + Ts[0].grid.shape)
+    if lights[1:]:  # colour channels: (L, C, h, w) -> (L, h, w, C)
         env = jnp.moveaxis(env, 1, -1)
     albedo = tuple(t.rows_to_image(r) for t, r in zip(Ts, rhos))
-    return AlbedoIlluminationSolution(env, albedo[0] if len(Ts) == 1 else albedo, history, steps, converged)
+    return AlbedoIlluminationSolution(env, albedo[0] if len(Ts) == 1 else albedo, history * s**2, steps, converged)
