@@ -1,5 +1,6 @@
 """The illumination solver against its optimality conditions, scipy, and the physics of a scene."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -278,7 +279,8 @@ def test_joint_albedo_converges_and_beats_assuming_white(textured_plane):
         assert np.mean([j[key] for j in joint]) > np.mean([b[key] for b in base]), (key, joint, base)
     # The thesis' objective: still moving after 20 iterations (relative change 4.6e-3), its maps worse
     # (tone-mapped SSIM 0.265 on average) than the converged solve's.
-    thesis = hj.solvers.solve_albedo_illumination(T, photos, albedo_weight=1e-3, albedo_ridge=0.0, max_steps=20)
+    thesis = hj.solvers.solve_albedo_illumination(T, photos, albedo_weight=1e-3, albedo_ridge=0.0, max_steps=20,
+                                                 throw=False)
     assert not bool(thesis.converged)
     early = [hj.metrics.env_errors(np.asarray(thesis.env[k]), truths[k])["ssim_tm"] for k in range(3)]
     assert np.mean(early) < np.mean([j["ssim_tm"] for j in joint]), (early, joint)
@@ -287,12 +289,25 @@ def test_joint_albedo_converges_and_beats_assuming_white(textured_plane):
             hj.solvers.solve_albedo_illumination(T, photos, albedo_ridge=bad)
 
 
+def test_joint_albedo_that_runs_out_of_iterations_says_so(textured_plane):
+    """`throw=True` (the default): a solve that did not meet `tol` raises one sentence naming the change
+    reached and the option; eagerly and under `jax.jit` alike. `throw=False` keeps the last iterate."""
+    T, _, photos, _ = textured_plane
+    with pytest.raises(eqx.EquinoxRuntimeError, match=r"stopped after 3 iterations .* raise max_steps"):
+        hj.solvers.solve_albedo_illumination(T, photos, max_steps=3)
+    with pytest.raises(Exception, match="ran out of max_steps"):
+        jax.block_until_ready(jax.jit(lambda P: hj.solvers.solve_albedo_illumination(T, P, max_steps=3).env)(
+            jnp.asarray(photos)))
+    kept = hj.solvers.solve_albedo_illumination(T, photos, max_steps=3, throw=False)
+    assert not bool(kept.converged) and int(kept.steps) == 3 and np.all(np.isfinite(np.asarray(kept.env)))
+
+
 def test_joint_albedo_is_the_same_at_any_exposure(textured_plane):
     """The solve runs on the photos divided by their RMS scale: at exposures of 1e-4 and 1e4 the albedo and
     the maps (over the exposure) are the exposure-1 solve's. (A weight not relative to the data, as the
     thesis' `||G rho||^2`, outweighed the data by 1e8 at 1e-4: a map with a tone-mapped SSIM of 0.02.)"""
     T, _, photos, _ = textured_plane
-    solve = lambda e: hj.solvers.solve_albedo_illumination(T, e * photos, max_steps=8, tol=0.0)
+    solve = lambda e: hj.solvers.solve_albedo_illumination(T, e * photos, max_steps=8, tol=0.0, throw=False)
     one = solve(1.0)
     for e in (1e-4, 1e4):
         other = solve(e)
@@ -307,7 +322,8 @@ def test_albedo_term_is_float32_stable(textured_plane):
     jitted and float64 runs then parted by 10-30% in the objective after 5 iterations.
     """
     T, _, photos, _ = textured_plane
-    run = lambda T, P: hj.solvers.solve_albedo_illumination(T, P, albedo_weight=1e-3, max_steps=5).objective_history
+    run = lambda T, P: hj.solvers.solve_albedo_illumination(T, P, albedo_weight=1e-3, max_steps=5,
+                                                                  throw=False).objective_history
     h32 = np.asarray(jax.jit(run)(T, jnp.asarray(photos)))
     with jax.enable_x64(True):
         T64 = jax.tree.map(lambda a: a.astype(jnp.float64) if a.dtype == jnp.float32 else a, T)
@@ -320,7 +336,7 @@ def test_joint_albedo_raises_instead_of_nan(textured_plane):
     T, _, photos, _ = textured_plane
     with pytest.raises(Exception, match="not positive definite"):
         jax.block_until_ready(jax.jit(lambda T, P: hj.solvers.solve_albedo_illumination(
-            T, P, smooth=0.0, ridge=0.0, albedo_weight=0.0, max_steps=2).env)(T, jnp.asarray(photos)))
+            T, P, smooth=0.0, ridge=0.0, albedo_weight=0.0, max_steps=2, throw=False).env)(T, jnp.asarray(photos)))
 
 
 def test_several_views_share_one_env_map(textured_plane, teapot):
@@ -343,7 +359,7 @@ def test_several_views_share_one_env_map(textured_plane, teapot):
     assert e["relrmse"] < np.mean([o["relrmse"] for o in one]) and e["ssim"] > np.mean([o["ssim"] for o in one])
     # joint albedo across views: one albedo image per view
     grey = [p.mean(-1)[None] for p in photos]
-    joint = hj.solvers.solve_albedo_illumination([T1, T2], grey, max_steps=3)
+    joint = hj.solvers.solve_albedo_illumination([T1, T2], grey, max_steps=3, throw=False)
     assert len(joint.albedo) == 2 and joint.albedo[1].shape == (40, 40) and joint.env.shape == (1,) + grid.shape
     with pytest.raises(ValueError, match="views need"):
         hj.solve_illumination([T1, T2], photos[:1])
@@ -352,9 +368,9 @@ def test_several_views_share_one_env_map(textured_plane, teapot):
 def test_joint_albedo_takes_colour_channels_as_lightings(textured_plane):
     T, _, photos, _ = textured_plane
     rgb = np.stack([photos[0], photos[1], photos[2]], -1)[None]  # one image, three "lightings"
-    sol = hj.solvers.solve_albedo_illumination(T, rgb, max_steps=3)
+    sol = hj.solvers.solve_albedo_illumination(T, rgb, max_steps=3, throw=False)
     assert sol.env.shape == (1, 8, 16, 3) and sol.albedo.shape == T.image_shape
-    grey = hj.solvers.solve_albedo_illumination(T, photos, max_steps=3)
+    grey = hj.solvers.solve_albedo_illumination(T, photos, max_steps=3, throw=False)
     assert np.allclose(sol.env[0, ..., 1], grey.env[1], rtol=1e-4, atol=1e-6)
     with pytest.raises(ValueError, match="stack"):
         hj.solvers.solve_albedo_illumination(T, photos[0])

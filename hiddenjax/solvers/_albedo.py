@@ -81,6 +81,7 @@ def solve_albedo_illumination(
     tol: float = 1e-6,
     rho_min: float = 1e-3,
     absolute: bool = False,
+    throw: bool = True,
 ) -> AlbedoIlluminationSolution:
     """Albedo scale and environment maps from `L` images of one static scene (eq. 5.4-5.7).
 
@@ -102,6 +103,9 @@ def solve_albedo_illumination(
       `max_steps`, as the thesis does).
     - `gamma`: damping of eq. 5.7; at most `max_steps` iterations, stopping once the objective
       changes by at most `tol` (relative) in one.
+    - `throw`: raise when `max_steps` ran out before `tol` (the error names the change reached and
+      the option that helps; under a caller's `jax.jit`, a runtime error of its program); `False`
+      returns the last iterate with `converged=False` (the thesis' early stop needs it).
 
     **Returns:** an `AlbedoIlluminationSolution` (`converged`: `tol` was met within `max_steps`);
     starts, as the thesis does, from ones.
@@ -139,7 +143,23 @@ def solve_albedo_illumination(
     (lights,) = shapes
     uses_G = not (isinstance(albedo_weight, (int, float)) and albedo_weight == 0)
     weights = tuple(traced_number(w) for w in (smooth, ridge, albedo_weight, albedo_ridge, gamma, tol, rho_min))
-    return _alternate(tuple(Ts), tuple(Ys), lights, weights, max_steps, uses_G, absolute)
+    sol = _alternate(tuple(Ts), tuple(Ys), lights, weights, max_steps, uses_G, absolute)
+    if not throw:
+        return sol
+    if isinstance(sol.converged, jax.core.Tracer):  # under a caller's trace: an error of its program
+        return eqx.tree_at(lambda s: s.env, sol, eqx.error_if(sol.env, ~sol.converged, NOT_CONVERGED))
+    if not bool(sol.converged):
+        h, k = np.asarray(sol.objective_history, np.float64), int(sol.steps)
+        change = abs(h[k - 1] - h[k - 2]) / max(abs(h[k - 2]), 1e-300) if k >= 2 else float("nan")
+        raise eqx.EquinoxRuntimeError(
+            f"solve_albedo_illumination stopped after {k} iterations with the objective still changing by "
+            f"{change:.1e} (relative) in one, above tol={tol:g}: the maps and albedo are not converged; raise "
+            f"max_steps=... (default 100), or pass throw=False to keep them")
+    return sol
+
+
+NOT_CONVERGED = ("solve_albedo_illumination ran out of max_steps before the objective's change met tol; raise "
+                 "max_steps, or pass throw=False")
 
 
 @filter_jit
