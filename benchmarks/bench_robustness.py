@@ -160,9 +160,8 @@ def _solvers(solves, priors, T, T2):
     if "albedo" in solves:
         def albedo(photo, second):
             sol = hj.solvers.solve_albedo_illumination(T, np.stack([photo, second["albedo"]]), throw=False)
-            history, k = np.asarray(sol.objective_history, np.float64), int(sol.steps)
-            change = abs(history[k - 1] - history[k - 2]) / max(abs(history[k - 2]), 1e-30)  # the last step's
-            return np.asarray(sol.env[0]), bool(sol.converged and np.isfinite(history[-1])), k, change
+            finite = bool(np.isfinite(np.asarray(sol.objective_history)[-1]))
+            return np.asarray(sol.env[0]), bool(sol.converged) and finite, int(sol.steps), sol.last_change()
         out["albedo", "l2"] = albedo
     return out
 

@@ -170,7 +170,6 @@ def test_a_later_solve_on_an_operator_compiles_nothing(small_setup):
     assert float(jnp.max(jnp.abs(first.env - dense.env)) / jnp.max(dense.env)) < 1e-4
 
 
-
 def test_the_albedo_solve_is_one_program_for_every_photo_and_weight(small_setup):
     """`solve_albedo_illumination` is one compiled program per shapes: its alternation traced eagerly was a
     new closure, compiled again on every call (about 2 s each at 64x64)."""
@@ -184,6 +183,7 @@ def test_the_albedo_solve_is_one_program_for_every_photo_and_weight(small_setup)
     again = lowered_programs(lambda: [np.asarray(hj.solvers.solve_albedo_illumination(
         T, photos * s, smooth=w, albedo_ridge=r, max_steps=4, throw=False).env) for s, w, r in ((0.5, 1e-3, 0.1), (2.0, 1e-2, 0.3))])
     assert again == 0, again
+
 
 SOLVE_PROBE = """
 import json

@@ -300,6 +300,7 @@ def test_joint_albedo_that_runs_out_of_iterations_says_so(textured_plane):
             jnp.asarray(photos)))
     kept = hj.solvers.solve_albedo_illumination(T, photos, max_steps=3, throw=False)
     assert not bool(kept.converged) and int(kept.steps) == 3 and np.all(np.isfinite(np.asarray(kept.env)))
+    assert kept.last_change() > 1e-6  # the change that tol did not bound
 
 
 def test_joint_albedo_is_the_same_at_any_exposure(textured_plane):

@@ -48,6 +48,8 @@ from ._illumination import (
 
 DEFAULT_ALBEDO_WEIGHT = 0.0
 DEFAULT_ALBEDO_RIDGE = 0.1
+NOT_CONVERGED = ("solve_albedo_illumination ran out of max_steps before the objective's change met tol; raise "
+                 "max_steps, or pass throw=False")  # under a caller's trace, where the numbers are not at hand
 
 
 class AlbedoIlluminationSolution(eqx.Module):
@@ -66,6 +68,11 @@ class AlbedoIlluminationSolution(eqx.Module):
     objective_history: Float[Array, " steps"]
     steps: Int[Array, ""]
     converged: Bool[Array, ""]
+
+    def last_change(self) -> float:
+        """The objective's relative change in the last iteration (NaN before two), the number `tol` bounds."""
+        h, k = np.asarray(self.objective_history, np.float64), int(self.steps)
+        return abs(h[k - 1] - h[k - 2]) / max(abs(h[k - 2]), 1e-300) if k >= 2 else float("nan")
 
 
 def solve_albedo_illumination(
@@ -149,17 +156,11 @@ def solve_albedo_illumination(
     if isinstance(sol.converged, jax.core.Tracer):  # under a caller's trace: an error of its program
         return eqx.tree_at(lambda s: s.env, sol, eqx.error_if(sol.env, ~sol.converged, NOT_CONVERGED))
     if not bool(sol.converged):
-        h, k = np.asarray(sol.objective_history, np.float64), int(sol.steps)
-        change = abs(h[k - 1] - h[k - 2]) / max(abs(h[k - 2]), 1e-300) if k >= 2 else float("nan")
         raise eqx.EquinoxRuntimeError(
-            f"solve_albedo_illumination stopped after {k} iterations with the objective still changing by "
-            f"{change:.1e} (relative) in one, above tol={tol:g}: the maps and albedo are not converged; raise "
-            f"max_steps=... (default 100), or pass throw=False to keep them")
+            f"solve_albedo_illumination stopped after {int(sol.steps)} iterations with the objective still changing "
+            f"by {sol.last_change():.1e} (relative) in one, above tol={tol:g}: the maps and albedo are not converged; "
+            f"raise max_steps=... (default 100), or pass throw=False to keep them")
     return sol
-
-
-NOT_CONVERGED = ("solve_albedo_illumination ran out of max_steps before the objective's change met tol; raise "
-                 "max_steps, or pass throw=False")
 
 
 @filter_jit
