@@ -16,6 +16,11 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")
 # A maximum size makes JAX lock each entry while it reads or writes it (filelock): the workers and the
 # scripts fill one cache at once.
 os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(4 << 30))
+# The suite compiles with LLVM's optimizations off (XLA's HLO passes still run; no fast math either way, so
+# values agree to float32 round-off): about 40% less compiling, which is half of a cold run's time.
+# Tests whose programs run long (sigmoid shadows over many triangles, the robust solves) are marked
+# `optimized` and compile as users' programs do. The benchmarks always measure optimized programs.
+os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 import jax
 import numpy as np
@@ -50,6 +55,22 @@ def pytest_configure(config):
         size = sum(f.stat().st_size for f in COMPILATION_CACHE.iterdir() if f.is_file())
         if size > 1 << 30:
             shutil.rmtree(COMPILATION_CACHE, ignore_errors=True)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """Tests marked `optimized` (and the fixtures they set up) compile with LLVM's optimizations, as users'
+    programs and the scripts they start do."""
+    marked = item.get_closest_marker("optimized") is not None and jax.config.read("jax_disable_most_optimizations")
+    if marked:
+        os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "0"
+        jax.config.update("jax_disable_most_optimizations", False)
+    try:
+        yield
+    finally:
+        if marked:
+            os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
+            jax.config.update("jax_disable_most_optimizations", True)
 
 
 @pytest.fixture

@@ -264,6 +264,7 @@ def test_shadow_geometry_calls_are_one_program_each(small_setup):
     assert lowered_programs(lambda: st.matrix(temperature=321.0)) <= 1
 
 
+@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_scene_setup_is_transfers_and_a_fit_a_few_programs(small_setup):
     """Building the shadow models from a scene casts host arrays on the host and transfers them (no JAX
     program: `jnp.asarray(x, dtype)` of each array compiled a conversion), a transport matrix's rows become an

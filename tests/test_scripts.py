@@ -13,10 +13,13 @@ ROOT = Path(__file__).resolve().parents[1]
 LONG = {"around_the_corner.py", "uncertain_scene.py", "bench_shadows.py", "bench_corners.py", "bench_weight_choice.py",
         "real_capture.py", "bench_scale.py", "distributed_solve.py", "design_occluder.py", "ablation.py",
         "bench_compile.py", "bench_robustness.py", "train_corner_networks.py"}
+# Scripts whose programs run long (sigmoid shadows, many solves): compiled with LLVM's optimizations.
+OPTIMIZED = {"smiley_lights.py", "bench_priors.py"}
 
 
 def scripts(folder):
-    return [pytest.param(p, marks=[pytest.mark.slow] if p.name in LONG else [], id=f"{folder}/{p.name}")
+    return [pytest.param(p, marks=[pytest.mark.slow] * (p.name in LONG) + [pytest.mark.optimized] * (p.name in OPTIMIZED),
+                         id=f"{folder}/{p.name}")
             for p in sorted((ROOT / folder).glob("*.py"))
             if not p.name.startswith("_")]  # _report.py is a shared module, not a script
 

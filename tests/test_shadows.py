@@ -481,6 +481,7 @@ def test_soft_transport_is_exact_without_occluders(plane_only):
     np.testing.assert_allclose(soft.A, hard.A, rtol=1e-5, atol=1e-7 * float(hard.A.max()))
 
 
+@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_soft_transport_converges_to_the_embree_matrix_as_T_grows(soft_transport):
     (scene, cam), grid, st = soft_transport
     same_samples = hard_on_the_same_samples(scene, st)
@@ -499,6 +500,7 @@ def test_soft_transport_converges_to_the_embree_matrix_as_T_grows(soft_transport
     np.testing.assert_allclose(T.albedo, embree.albedo, rtol=1e-6)
 
 
+@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_soft_transport_derivative_in_the_object_pose_matches_finite_differences(soft_transport):
     _, _, st = soft_transport
 
