@@ -18,8 +18,9 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")
 os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(4 << 30))
 # The suite compiles with LLVM's optimizations off (XLA's HLO passes still run; no fast math either way, so
 # values agree to float32 round-off): about 40% less compiling, which is half of a cold run's time.
-# Tests whose programs run long (sigmoid shadows over many triangles, the robust solves) are marked
-# `optimized` and compile as users' programs do. The benchmarks always measure optimized programs.
+# Tests whose programs run long (sigmoid shadows over many triangles, the robust solves; every `slow`
+# study) are marked `optimized` and compile as users' programs do. The benchmarks always measure
+# optimized programs.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 import jax
@@ -59,9 +60,11 @@ def pytest_configure(config):
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
-    """Tests marked `optimized` (and the fixtures they set up) compile with LLVM's optimizations, as users'
-    programs and the scripts they start do."""
-    marked = item.get_closest_marker("optimized") is not None and jax.config.read("jax_disable_most_optimizations")
+    """Tests marked `optimized` or `slow` (and the fixtures they set up) compile with LLVM's optimizations, as
+    users' programs and the scripts they start do (the slow studies run long programs: unoptimized, the
+    `-m slow` run took 19 minutes instead of 12-14)."""
+    long = item.get_closest_marker("optimized") or item.get_closest_marker("slow")
+    marked = long is not None and jax.config.read("jax_disable_most_optimizations")
     if marked:
         os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "0"
         jax.config.update("jax_disable_most_optimizations", False)
