@@ -65,6 +65,7 @@ def pytest_runtest_protocol(item, nextitem):
     `-m slow` run took 19 minutes instead of 12-14)."""
     long = item.get_closest_marker("optimized") or item.get_closest_marker("slow")
     marked = long is not None and jax.config.read("jax_disable_most_optimizations")
+    before = os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"]
     if marked:
         os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "0"
         jax.config.update("jax_disable_most_optimizations", False)
@@ -72,7 +73,7 @@ def pytest_runtest_protocol(item, nextitem):
         yield
     finally:
         if marked:
-            os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
+            os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = before  # the suite's setting, or the caller's own
             jax.config.update("jax_disable_most_optimizations", True)
 
 
