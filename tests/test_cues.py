@@ -156,18 +156,18 @@ def test_effective_dof_is_N_without_regularization():
 
 
 def _brute_cooks(A, y, R):
-    """Leave each pixel out, refit, and measure how far the whole re-projected fit moves."""
+    """Leave each pixel out, refit, and measure how far the whole re-projected fit moves.
+
+    The refit without row `i` solves its own normal equations, `(A^T A - a_i a_i^T + R) x_i = A^T y - a_i y_i`
+    (the rows' sums without row `i`), all pixels at once as one stacked solve."""
     M, N = A.shape
     fit = A @ np.linalg.solve(A.T @ A + R, A.T @ y)
     p = np.trace(A @ np.linalg.solve(A.T @ A + R, A.T))
     e = y - fit
     s2 = e @ e / (M - p)
-    out = np.empty(M)
-    for i in range(M):
-        keep = np.arange(M) != i
-        x_i = np.linalg.solve(A[keep].T @ A[keep] + R, A[keep].T @ y[keep])
-        out[i] = np.sum((fit - A @ x_i) ** 2) / (p * s2)
-    return out
+    without = A.T @ A + R - A[:, :, None] * A[:, None, :]  # (M, N, N)
+    x = np.linalg.solve(without, (A.T @ y - A * y[:, None])[..., None])[..., 0]  # (M, N): row i is x_i
+    return np.sum((fit[:, None] - A @ x.T) ** 2, axis=0) / (p * s2)
 
 
 def test_cooks_distance_matches_leave_one_out_unregularized():
