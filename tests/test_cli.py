@@ -101,7 +101,7 @@ def test_render_then_solve_through_the_command(built):
     assert leverage.shape == (10, 12) and np.all((leverage >= 0) & (leverage <= 1))
 
 
-def test_solve_a_scene_file_through_the_operator(built):
+def test_solve_a_scene_file_through_the_operator(built, capsys, monkeypatch):
     """`hiddenjax solve scene.toml photo --grid` builds the matrix-free operator on a finer grid and solves."""
     hj.io.write_exr(built / "sky8.exr", np.full((16, 32, 3), 2.0, np.float32))
     assert run("render", "A.npz", "sky8.exr", "-o", "photo8.exr", cwd=built).returncode == 0
@@ -113,10 +113,11 @@ def test_solve_a_scene_file_through_the_operator(built):
     env = hj.io.read_exr(built / "fine.exr")
     assert env.shape == (8, 16, 3)
     np.testing.assert_allclose(env[:4], 2.0, rtol=3e-2)  # the constant sky again, on the finer grid
-    proc = run("solve", "A.npz", "photo8.exr", "-o", "x.exr", "--grid", 8, 16, cwd=built)
-    assert proc.returncode != 0 and "apply to a scene file" in proc.stderr
-    proc = run("solve", "scene.toml", "photo8.exr", "-o", "x.exr", "--grid", 8, 1, cwd=built)
-    assert proc.returncode != 0 and "width must be >= 2" in proc.stderr
+    monkeypatch.chdir(built)  # the refusals in this process
+    assert main(["solve", "A.npz", "photo8.exr", "-o", "x.exr", "--grid", "8", "16"]) == 1
+    assert "apply to a scene file" in capsys.readouterr().err
+    assert main(["solve", "scene.toml", "photo8.exr", "-o", "x.exr", "--grid", "8", "1"]) == 1
+    assert "width must be >= 2" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -128,13 +129,14 @@ def test_solve_a_scene_file_through_the_operator(built):
         (("render", "nope.npz", "small.exr", "-o", "out.exr"), "transport matrix not found"),
     ],
 )
-def test_bad_input_one_line_nonzero_no_output(built, args, words):
+def test_bad_input_one_line_nonzero_no_output(built, args, words, capsys, monkeypatch):
+    """In this process (the console command's own exit status and stderr: the tests that run it)."""
     hj.io.write_exr(built / "small.exr", np.ones((2, 3), np.float32))
     (built / "bad.toml").write_text("[grid\nheight = 4\n")
     before = set(built.iterdir())
-    proc = run(*args, cwd=built)
-    assert proc.returncode == 1
-    lines = proc.stderr.strip().splitlines()
+    monkeypatch.chdir(built)
+    assert main(list(args)) == 1
+    lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and words in lines[0] and lines[0].startswith(f"hiddenjax {args[0]}: error:")
     assert set(built.iterdir()) == before  # no output, no temporary file left behind
 
