@@ -14,7 +14,7 @@ LONG = {"around_the_corner.py", "uncertain_scene.py", "bench_shadows.py", "bench
         "real_capture.py", "bench_scale.py", "distributed_solve.py", "design_occluder.py", "ablation.py",
         "bench_compile.py", "bench_robustness.py", "train_corner_networks.py"}
 # Scripts whose programs run long (sigmoid shadows, many solves): compiled with LLVM's optimizations.
-OPTIMIZED = {"smiley_lights.py", "bench_priors.py"}
+OPTIMIZED = {"smiley_lights.py"}
 
 
 def scripts(folder):

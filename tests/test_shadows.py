@@ -306,6 +306,7 @@ def _hard_visibility(scene, points, light):
     return ~RayCaster(scene).occluded_within(points, v / d[:, None], d)
 
 
+@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_soft_visibility_converges_to_embree_away_from_shadow_edges(teapot_points):
     (scene, cam), shadows = teapot_points
     light = np.array([0.35, 0.5, 0.25])
@@ -333,6 +334,7 @@ def test_soft_visibility_converges_to_embree_away_from_shadow_edges(teapot_point
     assert errors[2] < 1e-3, errors
 
 
+@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_culled_visibility_matches_dense_in_value_and_gradient(teapot_points):
     """The culled float32 sum against the dense sum in float64 (the reference: the dense float32 sum
     of all 4096 triangles' terms drifts, its gradient by 0.08% on CPU and 0.6% on an H100 at T = 1000,
