@@ -34,11 +34,12 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 
 
 def pytest_xdist_auto_num_workers(config):
-    """`-n auto`: one worker per core plus one, as memory allows (about 6 GiB a worker at its peak).
+    """`-n auto`: one worker per core, as memory allows (about 6 GiB a worker at its peak).
 
-    Compiling is single-threaded and is a third of a cold run: while one worker compiles, the
-    others keep the cores busy (2 cores, cold cache: 9.8 minutes with 3 workers, 10.2 with 2).
-    `PYTEST_XDIST_AUTO_NUM_WORKERS` still overrides it.
+    A worker is busier than one core: XLA's runtime runs a program's operations on threads of its
+    own. With the suite compiling unoptimized, a worker beyond the cores no longer pays for itself
+    (2 cores, cold cache: 11.0 minutes and 1240 CPU-seconds with 2 workers, 12.3 minutes and 1415
+    with 3). `PYTEST_XDIST_AUTO_NUM_WORKERS` still overrides it.
     """
     if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
         return int(os.environ["PYTEST_XDIST_AUTO_NUM_WORKERS"])
@@ -47,7 +48,7 @@ def pytest_xdist_auto_num_workers(config):
         memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
     except (ValueError, OSError, AttributeError):
         return cores
-    return max(1, min(cores + 1, int(memory // 6)))
+    return max(1, min(cores, int(memory // 6)))
 
 
 def pytest_configure(config):
