@@ -130,7 +130,7 @@ def test_solve_a_scene_file_through_the_operator(built, capsys, monkeypatch):
     ],
 )
 def test_bad_input_one_line_nonzero_no_output(built, args, words, capsys, monkeypatch):
-    """In this process (the console command's own exit status and stderr: the tests that run it)."""
+    """Run in this process: the console command's own exit status and stderr are checked by the tests that start it."""
     hj.io.write_exr(built / "small.exr", np.ones((2, 3), np.float32))
     (built / "bad.toml").write_text("[grid\nheight = 4\n")
     before = set(built.iterdir())
