@@ -243,6 +243,12 @@ def _sunsky(B, factor, R, lr, grid, c, yy, prior: SunSkyPrior, solver):
         total = lambda a: x + splat(grid, a, active) @ s
         f = lambda a: rss_of(total(a))
 
+        def decrease(trial, a):
+            """`f(trial) - f(a) = dt^T (G (t1 + t0) - 2 c)` with `dt = t1 - t0` the sources' change: the
+            difference itself, not of two sums of ~||y||^2 (whose float32 round-off exceeds a step's gain)."""
+            S0, S1 = splat(grid, a, active) @ s, splat(grid, trial, active) @ s
+            return jnp.sum((S1 - S0) * (gram(2 * x + S1 + S0) - 2 * c))
+
         def step(carry, _):
             a, mu = carry
             J = jax.jacfwd(lambda a: total(a))(a).reshape(N, C, -1)  # (N, C, 2K)
@@ -256,7 +262,7 @@ def _sunsky(B, factor, R, lr, grid, c, yy, prior: SunSkyPrior, solver):
             d = jnp.clip(d, -0.5 * h[None, :], 0.5 * h[None, :])
             trial = a + d
             trial = trial.at[:, 0].set(jnp.clip(trial[:, 0], 1e-6, jnp.pi - 1e-6))
-            better = f(trial) < f(a)
+            better = decrease(trial, a) < 0
             return (jnp.where(better, trial, a), jnp.where(better, mu / 3, mu * 4)), None
 
         (angles, _), _ = jax.lax.scan(step, (angles, jnp.asarray(1e-3, dtype)), None, length=prior.direction_steps)
