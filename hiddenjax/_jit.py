@@ -11,40 +11,65 @@ option, so it touches only hiddenjax's programs, never JAX's configuration or a 
 `jax.jit`; the CPU backend ignores it. Called inside a user's `jax.jit`, hiddenjax's functions
 are traced into that program and compiled with the user's options
 (`jax.jit(f, compiler_options=hj.COMPILER_OPTIONS)` gives them the same).
+
+On a CPU, jaxlib 0.10's XLA writes each fusion through its MLIR fusion emitters; its earlier
+emitters (`xla_cpu_use_fusion_emitters` off) compile hiddenjax's programs in 0.6-0.8 of the time
+and run the solvers and cue maps as fast, with the same maps (2 cores, cold cache: the default
+solve's first call 3.8 -> 2.4 s, the demo's 5.4 -> 4.4 s; `benchmarks/bench_compile.py`). The
+sigmoid shadows' programs run long, over many triangles, and the newer emitters' code runs them
+about 10% faster (a light fit's compiled call 13.7 s against 15.1 s): `jit(..., runs_long=True)`
+keeps XLA's default for them. The option is set only on the jaxlib line where it was measured: a
+name a jaxlib does not know is an error, not a warning.
 """
 
 import functools
 
 import equinox as eqx
 import jax
+import jaxlib
 import numpy as np
 
-COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False}
-"""The compile options of hiddenjax's own programs: XLA's Triton GEMM tuning off on GPUs (ignored on CPUs)."""
+
+def _jaxlib_line() -> tuple[int, int]:
+    major, minor = (jaxlib.__version__.split(".") + ["0"])[:2]
+    return int(major), int(minor)
 
 
-def jit(fun=None, **kwargs):
-    """`jax.jit(fun, **kwargs)` with `COMPILER_OPTIONS`; also a decorator factory (`jit(static_argnums=0)`)."""
+_EARLIER_CPU_EMITTERS = _jaxlib_line() == (0, 10)
+COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False} | (
+    {"xla_cpu_use_fusion_emitters": False} if _EARLIER_CPU_EMITTERS else {})
+"""The compile options of hiddenjax's own programs: XLA's Triton GEMM tuning off on GPUs (ignored on CPUs),
+and on jaxlib 0.10 the CPU's earlier fusion emitters (ignored on GPUs)."""
+_RUNS_LONG_OPTIONS = COMPILER_OPTIONS | ({"xla_cpu_use_fusion_emitters": True} if _EARLIER_CPU_EMITTERS else {})
+
+
+def jit(fun=None, *, runs_long: bool = False, **kwargs):
+    """`jax.jit(fun, **kwargs)` with `COMPILER_OPTIONS`; also a decorator factory (`jit(static_argnums=0)`).
+
+    `runs_long`: a program whose running, not its compiling, is its cost (the sigmoid shadows):
+    compiled with XLA's default CPU fusion emitters (module doc).
+    """
     if fun is None:
-        return lambda f: jit(f, **kwargs)
-    return _top_level_options(jax.jit, fun, kwargs)
+        return lambda f: jit(f, runs_long=runs_long, **kwargs)
+    return _top_level_options(jax.jit, fun, kwargs, runs_long)
 
 
-def filter_jit(fun=None, **kwargs):
-    """`eqx.filter_jit(fun, **kwargs)` with `COMPILER_OPTIONS`; also a decorator factory."""
+def filter_jit(fun=None, *, runs_long: bool = False, **kwargs):
+    """`eqx.filter_jit(fun, **kwargs)` with `COMPILER_OPTIONS`; also a decorator factory; `runs_long` as `jit`'s."""
     if fun is None:
-        return lambda f: filter_jit(f, **kwargs)
-    return _top_level_options(eqx.filter_jit, fun, kwargs)
+        return lambda f: filter_jit(f, runs_long=runs_long, **kwargs)
+    return _top_level_options(eqx.filter_jit, fun, kwargs, runs_long)
 
 
-def _top_level_options(make, fun, kwargs):
+def _top_level_options(make, fun, kwargs, runs_long):
     """`make(fun, **kwargs)` with the compiler options where it is a program of its own.
 
     JAX takes compile options only for a top-level program: called while another program is
     traced (a user's `jax.jit`, a `lax.scan` body, one hiddenjax function inside another), the
     same function is staged into that program without them.
     """
-    own, nested = make(fun, compiler_options=COMPILER_OPTIONS, **kwargs), make(fun, **kwargs)
+    options = _RUNS_LONG_OPTIONS if runs_long else COMPILER_OPTIONS
+    own, nested = make(fun, compiler_options=options, **kwargs), make(fun, **kwargs)
 
     @functools.wraps(fun)
     def call(*args, **kw):

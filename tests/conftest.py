@@ -16,12 +16,6 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")
 # A maximum size makes JAX lock each entry while it reads or writes it (filelock): the workers and the
 # scripts fill one cache at once.
 os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(4 << 30))
-# The suite compiles with LLVM's optimizations off (XLA's HLO passes still run; no fast math either way, so
-# values agree to float32 round-off): about 40% less compiling, which is half of a cold run's time.
-# Tests whose programs run long (sigmoid shadows over many triangles, the robust solves; every `slow`
-# study) are marked `optimized` and compile as users' programs do. The benchmarks always measure
-# optimized programs.
-os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 import jax
 import numpy as np
@@ -32,14 +26,25 @@ from hiddenjax.transport._embree import RayCaster
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
+# hiddenjax's own programs compile with `hj.COMPILER_OPTIONS`: on jaxlib 0.10, the CPU's earlier fusion
+# emitters. The tests' own programs and their array glue get them too (XLA reads XLA_FLAGS at its first
+# compile, and the scripts and commands the tests start inherit it), except the sigmoid shadows' programs
+# that run long (`runs_long`): 2 cores, cold cache, the suite took 10.0 minutes and 1014 CPU-seconds,
+# against 11.0 and 1240 with XLA's default emitters and LLVM's optimizations off. Every program compiles as
+# users' programs do, optimized: with LLVM's optimizations off, the earlier emitters computed one of the
+# sunsky prior's programs wrongly.
+if "xla_cpu_use_fusion_emitters" in hj.COMPILER_OPTIONS and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_use_fusion_emitters=false".strip()
+
 
 def pytest_xdist_auto_num_workers(config):
     """`-n auto`: one worker per core, as memory allows (about 6 GiB a worker at its peak).
 
     A worker is busier than one core: XLA's runtime runs a program's operations on threads of its
-    own. With the suite compiling unoptimized, a worker beyond the cores no longer pays for itself
-    (2 cores, cold cache: 11.0 minutes and 1240 CPU-seconds with 2 workers, 12.3 minutes and 1415
-    with 3). `PYTEST_XDIST_AUTO_NUM_WORKERS` still overrides it.
+    own. Once compiling is no longer half of a cold run, a worker beyond the cores does not pay for
+    itself (2 cores, cold cache, XLA's default emitters unoptimized: 11.0 minutes and 1240
+    CPU-seconds with 2 workers, 12.3 minutes and 1415 with 3). `PYTEST_XDIST_AUTO_NUM_WORKERS`
+    still overrides it.
     """
     if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
         return int(os.environ["PYTEST_XDIST_AUTO_NUM_WORKERS"])
@@ -57,25 +62,6 @@ def pytest_configure(config):
         size = sum(f.stat().st_size for f in COMPILATION_CACHE.iterdir() if f.is_file())
         if size > 1 << 30:
             shutil.rmtree(COMPILATION_CACHE, ignore_errors=True)
-
-
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_protocol(item, nextitem):
-    """Tests marked `optimized` or `slow` (and the fixtures they set up) compile with LLVM's optimizations, as
-    users' programs and the scripts they start do (the slow studies run long programs: unoptimized, the
-    `-m slow` run took 19 minutes instead of 12-14)."""
-    long = item.get_closest_marker("optimized") or item.get_closest_marker("slow")
-    marked = long is not None and jax.config.read("jax_disable_most_optimizations")
-    before = os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"]
-    if marked:
-        os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "0"
-        jax.config.update("jax_disable_most_optimizations", False)
-    try:
-        yield
-    finally:
-        if marked:
-            os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = before  # the suite's setting, or the caller's own
-            jax.config.update("jax_disable_most_optimizations", True)
 
 
 @pytest.fixture

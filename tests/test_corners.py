@@ -310,7 +310,6 @@ def test_cylinder_quadrature_integrates_the_surface():
     np.testing.assert_allclose(q[~side, 1], 0.1)
 
 
-@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_pathwise_refinement_through_sigmoid_shadows_finds_the_object_in_an_embree_frame(soft_scene):
     """The observation comes from the other renderer (Embree, hard shadows, random object points)."""
     scene, r = soft_scene

@@ -17,7 +17,6 @@ ROOT = Path(__file__).resolve().parents[1]
 FAST = ["README.md", "docs/getting-started.md", "docs/guide/objects-as-cameras.md", "docs/guide/hidden-cues.md",
         "docs/guide/shadow-edges.md", "docs/guide/real-captures.md", "docs/guide/large-maps.md",
         "docs/guide/compilation.md"]
-OPTIMIZED = {"docs/guide/shadow-edges.md"}  # sigmoid shadows over many triangles: long programs, compiled optimized
 SLOW = ["docs/guide/uncertain-scenes.md", "docs/guide/around-the-corner.md", "docs/guide/design.md"]
 
 
@@ -40,7 +39,7 @@ def test_every_guide_is_covered():
     assert pages <= set(FAST + SLOW), pages - set(FAST + SLOW)
 
 
-@pytest.mark.parametrize("page", [pytest.param(p, marks=pytest.mark.optimized) if p in OPTIMIZED else p for p in FAST])
+@pytest.mark.parametrize("page", FAST)
 def test_page_runs(page, tmp_path, monkeypatch):
     run_page(page, tmp_path, monkeypatch)
 

@@ -365,7 +365,6 @@ def low_sun_photo():
     return T, np.asarray(hj.reference_render(setup.scene, setup.camera, sky, samples=64, seed=1))
 
 
-@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_tv_converges_under_a_low_sun_and_says_so_when_it_cannot(low_sun_photo):
     T, photo = low_sun_photo
     sol = hj.solve_illumination(T, photo, prior="tv")  # throw=True: raises if it stops early

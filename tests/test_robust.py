@@ -15,8 +15,6 @@ from hiddenjax.solvers._robust import _projected_gram
 from hiddenjax.transport._embree import RayCaster, primary_hits
 
 MM, DEG = 1e-3, np.radians(1.0)
-# The soft model's programs run long (many triangles, Gauss-Newton): compiled as users' are.
-pytestmark = pytest.mark.optimized
 
 
 def _problem(coarse):

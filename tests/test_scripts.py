@@ -13,13 +13,10 @@ ROOT = Path(__file__).resolve().parents[1]
 LONG = {"around_the_corner.py", "uncertain_scene.py", "bench_shadows.py", "bench_corners.py", "bench_weight_choice.py",
         "real_capture.py", "bench_scale.py", "distributed_solve.py", "design_occluder.py", "ablation.py",
         "bench_compile.py", "bench_robustness.py", "train_corner_networks.py"}
-# Scripts whose programs run long (sigmoid shadows over many triangles): compiled with LLVM's optimizations
-# (each choice measured both ways; bench_priors.py --quick runs faster unoptimized).
-OPTIMIZED = {"smiley_lights.py"}
 
 
 def scripts(folder):
-    return [pytest.param(p, marks=[pytest.mark.slow] * (p.name in LONG) + [pytest.mark.optimized] * (p.name in OPTIMIZED),
+    return [pytest.param(p, marks=[pytest.mark.slow] * (p.name in LONG),
                          id=f"{folder}/{p.name}")
             for p in sorted((ROOT / folder).glob("*.py"))
             if not p.name.startswith("_")]  # _report.py is a shared module, not a script

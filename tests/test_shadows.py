@@ -306,7 +306,6 @@ def _hard_visibility(scene, points, light):
     return ~RayCaster(scene).occluded_within(points, v / d[:, None], d)
 
 
-@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_soft_visibility_converges_to_embree_away_from_shadow_edges(teapot_points):
     (scene, cam), shadows = teapot_points
     light = np.array([0.35, 0.5, 0.25])
@@ -334,7 +333,6 @@ def test_soft_visibility_converges_to_embree_away_from_shadow_edges(teapot_point
     assert errors[2] < 1e-3, errors
 
 
-@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_culled_visibility_matches_dense_in_value_and_gradient(teapot_points):
     """The culled float32 sum against the dense sum in float64 (the reference: the dense float32 sum
     of all 4096 triangles' terms drifts, its gradient by 0.08% on CPU and 0.6% on an H100 at T = 1000,
@@ -483,7 +481,6 @@ def test_soft_transport_is_exact_without_occluders(plane_only):
     np.testing.assert_allclose(soft.A, hard.A, rtol=1e-5, atol=1e-7 * float(hard.A.max()))
 
 
-@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_soft_transport_converges_to_the_embree_matrix_as_T_grows(soft_transport):
     (scene, cam), grid, st = soft_transport
     same_samples = hard_on_the_same_samples(scene, st)
@@ -502,7 +499,6 @@ def test_soft_transport_converges_to_the_embree_matrix_as_T_grows(soft_transport
     np.testing.assert_allclose(T.albedo, embree.albedo, rtol=1e-6)
 
 
-@pytest.mark.optimized  # long-running programs: compiled as users' are
 def test_soft_transport_derivative_in_the_object_pose_matches_finite_differences(soft_transport):
     _, _, st = soft_transport
 

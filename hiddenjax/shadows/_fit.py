@@ -242,5 +242,5 @@ def _gd_impl(params, args, steps, lr, fit_ambient):
 
 # One compiled program per (method, ambient, steps per round): the temperature is an argument, so
 # the annealing rounds reuse it.
-_lm_round = {a: jit(partial(_lm_impl, fit_ambient=a), static_argnums=2) for a in (False, True)}
-_gd_round = {a: jit(partial(_gd_impl, fit_ambient=a), static_argnums=2) for a in (False, True)}
+_lm_round = {a: jit(partial(_lm_impl, fit_ambient=a), static_argnums=2, runs_long=True) for a in (False, True)}
+_gd_round = {a: jit(partial(_gd_impl, fit_ambient=a), static_argnums=2, runs_long=True) for a in (False, True)}

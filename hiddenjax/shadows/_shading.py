@@ -99,7 +99,7 @@ def light_images(shadows: ShadowScene, positions, temperature=DEFAULT_TEMPERATUR
     return _light_images(shadows, positions, traced_number(temperature), **kwargs)
 
 
-@filter_jit
+@filter_jit(runs_long=True)
 def _light_images(shadows: ShadowScene, positions, temperature, **kwargs):
     positions = jnp.atleast_2d(jnp.asarray(positions, shadows.points.dtype))
 
@@ -122,7 +122,7 @@ def render_lights(shadows: ShadowScene, positions, intensities=None, temperature
                           jnp.asarray(ambient_direction, shadows.points.dtype))
 
 
-@filter_jit
+@filter_jit(runs_long=True)
 def _render_lights(shadows, positions, intensities, temperature, ambient, ambient_direction):
     images = light_images(shadows, positions, temperature)
     I = jnp.ones(images.shape[0]) if intensities is None else jnp.asarray(intensities, images.dtype)
