@@ -18,8 +18,9 @@ and run the solvers and cue maps as fast, with the same maps (2 cores, cold cach
 solve's first call 3.8 -> 2.4 s, the demo's 5.4 -> 4.4 s; `benchmarks/bench_compile.py`). The
 sigmoid shadows' programs run long, over many triangles, and the newer emitters' code runs them
 about 10% faster (a light fit's compiled call 13.7 s against 15.1 s): `jit(..., runs_long=True)`
-keeps XLA's default for them. The option is set only on the jaxlib line where it was measured: a
-name a jaxlib does not know is an error, not a warning.
+leaves the emitters to XLA for them (its default, or what `XLA_FLAGS` chooses). The option is set
+only on the jaxlib line where it was measured: a name a jaxlib does not know is an error, not a
+warning.
 """
 
 import functools
@@ -35,19 +36,18 @@ def _jaxlib_line() -> tuple[int, int]:
     return int(major), int(minor)
 
 
-_EARLIER_CPU_EMITTERS = _jaxlib_line() == (0, 10)
 COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False} | (
-    {"xla_cpu_use_fusion_emitters": False} if _EARLIER_CPU_EMITTERS else {})
+    {"xla_cpu_use_fusion_emitters": False} if _jaxlib_line() == (0, 10) else {})
 """The compile options of hiddenjax's own programs: XLA's Triton GEMM tuning off on GPUs (ignored on CPUs),
 and on jaxlib 0.10 the CPU's earlier fusion emitters (ignored on GPUs)."""
-_RUNS_LONG_OPTIONS = COMPILER_OPTIONS | ({"xla_cpu_use_fusion_emitters": True} if _EARLIER_CPU_EMITTERS else {})
+_RUNS_LONG_OPTIONS = {k: v for k, v in COMPILER_OPTIONS.items() if k != "xla_cpu_use_fusion_emitters"}
 
 
 def jit(fun=None, *, runs_long: bool = False, **kwargs):
     """`jax.jit(fun, **kwargs)` with `COMPILER_OPTIONS`; also a decorator factory (`jit(static_argnums=0)`).
 
     `runs_long`: a program whose running, not its compiling, is its cost (the sigmoid shadows):
-    compiled with XLA's default CPU fusion emitters (module doc).
+    the CPU's fusion emitters are left to XLA, its default or `XLA_FLAGS` (module doc).
     """
     if fun is None:
         return lambda f: jit(f, runs_long=runs_long, **kwargs)

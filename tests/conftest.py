@@ -28,11 +28,12 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 
 # hiddenjax's own programs compile with `hj.COMPILER_OPTIONS`: on jaxlib 0.10, the CPU's earlier fusion
 # emitters. The tests' own programs and their array glue get them too (XLA reads XLA_FLAGS at its first
-# compile, and the scripts and commands the tests start inherit it), except the sigmoid shadows' programs
-# that run long (`runs_long`): 2 cores, cold cache, the suite took 10.0 minutes and 1014 CPU-seconds,
-# against 11.0 and 1240 with XLA's default emitters and LLVM's optimizations off. Every program compiles as
-# users' programs do, optimized: with LLVM's optimizations off, the earlier emitters computed one of the
-# sunsky prior's programs wrongly.
+# compile, and the scripts and commands the tests start inherit it), and so do the sigmoid shadows' programs
+# that run long (`runs_long`), which leave the emitters to XLA: briefly run here, they are faster compiled
+# so. 2 cores, cold cache: the suite took 9.4 minutes and 955 CPU-seconds, against 11.0 and 1240 with
+# XLA's default emitters and LLVM's optimizations off (10.0 and 1014 with the default emitters for the
+# sigmoid shadows). Every program compiles optimized, as users' programs do: with LLVM's optimizations off,
+# the earlier emitters computed one of the sunsky prior's programs wrongly.
 if "xla_cpu_use_fusion_emitters" in hj.COMPILER_OPTIONS and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_use_fusion_emitters=false".strip()
 
