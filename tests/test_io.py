@@ -55,6 +55,9 @@ def test_bad_input_leaves_no_partial_file(tmp_path):
         hj.io.write_hdr(tmp_path / "n.hdr", -np.ones((2, 2)))
     with pytest.raises(ValueError, match="shape"):
         hj.io.write_exr(tmp_path / "s.exr", np.ones((2, 2, 5)))
+    for writer, name in [(hj.io.write_exr, "c.exr"), (hj.io.write_png, "c.png")]:
+        with pytest.raises(ValueError, match="complex"):  # not its real part with a warning
+            writer(tmp_path / name, np.ones((2, 2), np.complex64))
     with pytest.raises(ValueError, match="does not exist"):
         hj.io.write_exr(tmp_path / "missing" / "a.exr", np.ones((2, 2)))
     assert os.listdir(tmp_path) == []

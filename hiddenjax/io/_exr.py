@@ -39,6 +39,8 @@ def read_exr(path) -> np.ndarray:
 
 
 def _check_image(array) -> np.ndarray:
+    if np.iscomplexobj(array):  # a float32 cast would drop the imaginary part with only a warning
+        raise ValueError("image has complex values; write a real image (np.real(a) or np.abs(a))")
     a = np.asarray(array, dtype=np.float32)
     if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] != 3) or 0 in a.shape:
         raise ValueError(f"expected an image (H, W) or (H, W, 3), got shape {a.shape}")
