@@ -73,14 +73,29 @@ def _top_level_options(make, fun, kwargs, runs_long):
 
     @functools.wraps(fun)
     def call(*args, **kw):
+        if _staged(args, kw):
+            return nested(*args, **kw)
         try:
             return own(*args, **kw)
-        except ValueError as error:
+        except ValueError as error:  # staged all the same (a traced value that is not an argument)
             if "compiler_options" not in str(error):
                 raise
             return nested(*args, **kw)
 
     return call
+
+
+def _staged(args, kwargs) -> bool:
+    """Whether an argument is a tracer of a program being staged (a caller's `jax.jit`, a `lax.scan` body, ...).
+
+    JAX refuses compile options there only once it has traced `fun` (when it binds the program into
+    the caller's), and `eqx.filter_jit`'s second attempt without them traces `fun` again: a call under
+    a caller's trace went straight to the nested form rather than tracing twice (the exact solver's
+    program: 0.38 s a trace), and each hiddenjax function nested in another doubled it again. Told
+    by the tracer's class name, which JAX does not export; should it change, calls fall back to
+    trying the options first, as before.
+    """
+    return any(type(leaf).__name__ == "DynamicJaxprTracer" for leaf in jax.tree_util.tree_leaves((args, kwargs)))
 
 
 def host_array(x, dtype=None) -> jax.Array:

@@ -8,6 +8,7 @@ import warnings
 from pathlib import Path
 
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import hiddenjax as hj
@@ -22,6 +23,7 @@ events = []
 monitoring.register_event_listener(lambda name, **kw: events.append(name))
 import hiddenjax as hj
 import jax.numpy as jnp
+import numpy as np
 before = None if jax.config.jax_compilation_cache_dir is None else str(jax.config.jax_compilation_cache_dir)
 folder = hj.enable_compilation_cache()
 x = jax.jit(lambda a: jnp.linalg.cholesky(a @ a.T + 3 * jnp.eye(a.shape[0])).sum())(jnp.arange(36.0).reshape(6, 6) / 36)
@@ -251,6 +253,30 @@ def test_every_program_of_the_package_is_compiled_with_its_compiler_options():
     for runs_long in (False, True):
         assert float(jit(lambda a: a @ a, runs_long=runs_long)(jnp.eye(3))[0, 0]) == 1.0
     assert float(jax.jit(lambda a: a + 1, compiler_options=hj.COMPILER_OPTIONS)(1.0)) == 2.0
+
+
+def test_a_function_called_inside_another_program_is_traced_once():
+    """Inside a caller's trace, hiddenjax's functions are staged without their options (JAX refuses them
+    there) and traced once, whether the traced value is an argument or only closed over."""
+    import jax
+
+    from hiddenjax._jit import filter_jit, jit
+
+    for wrap in (jit, filter_jit):
+        traces = []
+
+        @wrap
+        def double(x):
+            traces.append(x)
+            return 2 * x
+
+        assert float(jax.jit(lambda x: double(x) + 1)(1.0)) == 3.0
+        assert len(traces) == 1, (wrap.__name__, len(traces))
+        _, ys = jax.lax.scan(lambda c, x: (c, double(x)), 0.0, jnp.arange(3.0))
+        assert np.array_equal(np.asarray(ys), [0.0, 2.0, 4.0]) and len(traces) == 2, (wrap.__name__, len(traces))
+        # a traced value that is no argument of the call still works (the options are refused, then dropped)
+        assert float(jax.jit(lambda x: double(jnp.float32(2.0)) + x)(1.0)) == 5.0
+        assert float(double(jnp.float32(3.0))) == 6.0  # at the top level: its own program, with the options
 
 
 def test_shadow_geometry_calls_are_one_program_each(small_setup):
