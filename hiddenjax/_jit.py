@@ -89,11 +89,10 @@ def _staged(args, kwargs) -> bool:
     """Whether an argument is a tracer of a program being staged (a caller's `jax.jit`, a `lax.scan` body, ...).
 
     JAX refuses compile options there only once it has traced `fun` (when it binds the program into
-    the caller's), and `eqx.filter_jit`'s second attempt without them traces `fun` again: a call under
-    a caller's trace went straight to the nested form rather than tracing twice (the exact solver's
-    program: 0.38 s a trace), and each hiddenjax function nested in another doubled it again. Told
-    by the tracer's class name, which JAX does not export; should it change, calls fall back to
-    trying the options first, as before.
+    the caller's), and `eqx.filter_jit`'s retry without them would trace `fun` again, each level of
+    nesting doubling the tracing (the exact solver's program: 0.38 s a trace); such a call goes
+    straight to the form without options. Told by the tracer's class name, which JAX does not export:
+    should it change, calls try the options first and retry without them, slower but the same.
     """
     return any(type(leaf).__name__ == "DynamicJaxprTracer" for leaf in jax.tree_util.tree_leaves((args, kwargs)))
 

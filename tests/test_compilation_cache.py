@@ -23,7 +23,6 @@ events = []
 monitoring.register_event_listener(lambda name, **kw: events.append(name))
 import hiddenjax as hj
 import jax.numpy as jnp
-import numpy as np
 before = None if jax.config.jax_compilation_cache_dir is None else str(jax.config.jax_compilation_cache_dir)
 folder = hj.enable_compilation_cache()
 x = jax.jit(lambda a: jnp.linalg.cholesky(a @ a.T + 3 * jnp.eye(a.shape[0])).sum())(jnp.arange(36.0).reshape(6, 6) / 36)
