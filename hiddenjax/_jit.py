@@ -36,11 +36,11 @@ def _jaxlib_line() -> tuple[int, int]:
     return int(major), int(minor)
 
 
-COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False} | (
-    {"xla_cpu_use_fusion_emitters": False} if _jaxlib_line() == (0, 10) else {})
+_CPU_EMITTERS = {"xla_cpu_use_fusion_emitters": False} if _jaxlib_line() == (0, 10) else {}
+COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False} | _CPU_EMITTERS
 """The compile options of hiddenjax's own programs: XLA's Triton GEMM tuning off on GPUs (ignored on CPUs),
 and on jaxlib 0.10 the CPU's earlier fusion emitters (ignored on GPUs)."""
-_RUNS_LONG_OPTIONS = {k: v for k, v in COMPILER_OPTIONS.items() if k != "xla_cpu_use_fusion_emitters"}
+_RUNS_LONG_OPTIONS = {k: v for k, v in COMPILER_OPTIONS.items() if k not in _CPU_EMITTERS}
 
 
 def jit(fun=None, *, runs_long: bool = False, **kwargs):

@@ -34,8 +34,10 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # XLA's default emitters and LLVM's optimizations off (10.0 and 1014 with the default emitters for the
 # sigmoid shadows). Every program compiles optimized, as users' programs do: with LLVM's optimizations off,
 # the earlier emitters computed one of the sunsky prior's programs wrongly.
-if "xla_cpu_use_fusion_emitters" in hj.COMPILER_OPTIONS and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_use_fusion_emitters=false".strip()
+_cpu_flags = [f"--{k}={str(v).lower()}" for k, v in hj.COMPILER_OPTIONS.items()
+              if k.startswith("xla_cpu_") and k not in os.environ.get("XLA_FLAGS", "")]  # a caller's own choice stays
+if _cpu_flags:
+    os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_cpu_flags]).strip()
 
 
 def pytest_xdist_auto_num_workers(config):
