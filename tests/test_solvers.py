@@ -462,6 +462,7 @@ def test_accelerator_block_sizes_give_the_same_solution(x64, monkeypatch):
         sizes = _qp._capacities(n, "cpu")
         assert sizes == sorted(set(sizes)) and n <= sizes[-1] <= n + 8
     assert _qp._capacities(2048, "gpu") == [1024, 2048] and _qp._capacities(700, "gpu") == [700]
+    assert _qp._fixed_capacities(2048, "gpu") == []  # no steps on the fixed entries there
     rng = np.random.default_rng(0)
     A = np.abs(rng.normal(size=(1500, 1100))) * (rng.random((1500, 1100)) < 0.05)
     B = jnp.asarray(A.T @ A + 0.1 * np.eye(1100))
@@ -471,6 +472,7 @@ def test_accelerator_block_sizes_give_the_same_solution(x64, monkeypatch):
     original = _qp._capacities
     used = []
     monkeypatch.setattr(_qp, "_capacities", lambda n, backend=None: used.append(n) or original(n, "gpu"))
+    monkeypatch.setattr(_qp, "_fixed_capacities", lambda n, backend=None: [])
     jax.clear_caches()  # trace the solver again, with the accelerator's sizes
     gpu = solve()
     assert set(used) == {1100}
@@ -481,3 +483,29 @@ def test_accelerator_block_sizes_give_the_same_solution(x64, monkeypatch):
     ref = scipy.optimize.nnls(np.vstack([A, np.sqrt(0.1) * np.eye(1100)]), np.concatenate([y, np.zeros(1100)]),
                               maxiter=20 * 1100)[0]
     np.testing.assert_allclose(x, ref, rtol=0, atol=1e-8 * np.abs(ref).max())
+
+
+def test_steps_on_few_fixed_entries_give_the_same_solution(x64, monkeypatch):
+    """A face that fixes at most 64 or 128 entries is solved on them (Schur complement of the whole factor):
+    the optimum of scipy's NNLS, and of the steps that factorize the free block, to round-off."""
+    from hiddenjax import _qp
+
+    n = 1100
+    assert _qp._fixed_capacities(n, "cpu") == [64, 128] and _qp._fixed_capacities(2048, "cpu") == [64, 128, 256]
+    assert _qp._fixed_capacities(200, "cpu") == []  # a small block factorizes faster than it is bordered
+    rng = np.random.default_rng(3)
+    A = np.abs(rng.normal(size=(1500, n))) * (rng.random((1500, n)) < 0.05)
+    x_true = np.where(rng.random(n) < 0.04, 0.0, rng.uniform(0.5, 2.0, n))  # ~44 entries at the bound
+    y = A @ x_true + 0.3 * rng.normal(size=1500)
+    B, c = jnp.asarray(A.T @ A + 0.01 * np.eye(n)), jnp.asarray(A.T @ y)
+    solve = lambda: jax.jit(lambda B, c: _qp._solve(B, _qp._cholesky(B), c, ProjectedNewton(), True))(B, c)
+    fixed = solve()
+    x = np.asarray(fixed[0])
+    assert int(fixed[3]) == 0 and 0 < n - np.sum(x > 0) <= 64  # the last steps ran on the fixed entries
+    assert np.max(np.abs(np.minimum(x, np.asarray(fixed[1])))) <= 1e-10 * np.abs(np.asarray(c)).max()
+    ref = scipy.optimize.nnls(np.vstack([A, 0.1 * np.eye(n)]), np.concatenate([y, np.zeros(n)]), maxiter=20 * n)[0]
+    np.testing.assert_allclose(x, ref, rtol=0, atol=1e-8 * np.abs(ref).max())
+    monkeypatch.setattr(_qp, "_fixed_capacities", lambda n, backend=None: [])
+    jax.clear_caches()  # trace the solver again, every step on the free block
+    face = solve()
+    np.testing.assert_allclose(x, np.asarray(face[0]), rtol=0, atol=1e-10 * np.abs(ref).max())
