@@ -54,27 +54,33 @@ def test_leverage_is_the_hat_diagonal(scene_T, smooth, method):
 
 
 def test_products_with_the_triangular_factor_skip_only_zeros():
-    """`rows L^-T` and `z L^-1` by blocks, skipping the zero blocks of the triangular `L^-1` and the
-    all-zero column blocks of `rows`, equal the dense products."""
-    from hiddenjax.cues._linear import _factor_edges, _times_factor, _times_factor_transpose
+    """`rows L^-T` and `z L^-1` by blocks, skipping the zero blocks of the triangular `L^-1`, the blocks
+    of it that are zero (as where unseen directions decouple) and the all-zero column blocks of `rows`,
+    equal the dense products."""
+    from hiddenjax.cues._linear import _factor_blocks, _factor_edges, _times_factor, _times_factor_transpose
 
     rng = np.random.default_rng(0)
     n = 2200
     edges = _factor_edges(n)
     assert len(edges) == 5  # four blocks of 550
     L = np.tril(rng.normal(size=(n, n)))
+    L[edges[3]:, : edges[2]] = 0  # blocks (3, 0) and (3, 1) of the factor are zero: their products are skipped
     rows = rng.normal(size=(70, n))
     rows[:, edges[2] : edges[3]] = 0  # a dark block: its products are skipped
     with jax.enable_x64():
-        np.testing.assert_allclose(_times_factor_transpose(jnp.asarray(rows), jnp.asarray(L), edges), rows @ L.T,
-                                   rtol=1e-10, atol=1e-9)
-        np.testing.assert_allclose(_times_factor(jnp.asarray(rows), jnp.asarray(L), edges), rows @ L,
+        nonzero = _factor_blocks(jnp.asarray(L), edges)
+        assert [(j, k) for (j, k), flag in nonzero.items() if not flag] == [(3, 0), (3, 1)]
+        np.testing.assert_allclose(_times_factor_transpose(jnp.asarray(rows), jnp.asarray(L), edges, nonzero),
+                                   rows @ L.T, rtol=1e-10, atol=1e-9)
+        np.testing.assert_allclose(_times_factor(jnp.asarray(rows), jnp.asarray(L), edges, nonzero), rows @ L,
                                    rtol=1e-10, atol=1e-9)
 
 
 def test_cues_of_a_half_dark_grid_by_blocks_match_the_dense_formulas():
     """32x64 cells (four column blocks), the lower half dark as under a floor, so the blockwise products
     skip: float64 cues equal the dense formulas, and float32 leverage and uncertainty match them."""
+    from hiddenjax.cues._linear import _factor_blocks, _factor_edges
+
     rng = np.random.default_rng(1)
     P, grid = 1500, hj.EnvGrid(32, 64)
     A = np.zeros((P, grid.size), np.float32)
@@ -88,6 +94,10 @@ def test_cues_of_a_half_dark_grid_by_blocks_match_the_dense_formulas():
     with jax.enable_x64():
         cues = cues_of(jnp.float64)
         h, cook = (np.asarray(v) for v in cues.influence(jnp.asarray(y, jnp.float64).reshape(50, 30)))
+        # with the ridge alone the dark half decouples exactly: the factor's blocks that join it to the
+        # lit half are zero, so the products with them are skipped
+        zero = [jk for jk, flag in _factor_blocks(cues.inverse_factor, _factor_edges(grid.size)).items() if not flag]
+        assert zero == [(2, 0), (2, 1), (3, 0), (3, 1), (3, 2)]
     A64, ridge = A.astype(np.float64), float(cues.ridge)
     Binv = np.linalg.inv(A64.T @ A64 + ridge * np.eye(grid.size))
     W = A64 @ Binv  # rows w_i = B^-1 a_i^T

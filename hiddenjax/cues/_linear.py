@@ -109,7 +109,9 @@ class LinearCues(eqx.Module):
         """`h_ii = a_i (A^T A + R)^-1 a_i^T` (eq. 6.2) for every observed pixel, `(P,)` in `[0, 1]`."""
         Linv = self.inverse_factor
         edges = _factor_edges(Linv.shape[0])
-        return self._blocks(lambda a: jnp.sum(jnp.square(_times_factor_transpose(a, Linv, edges)), axis=1), chunk)
+        nonzero = _factor_blocks(Linv, edges)
+        return self._blocks(lambda a: jnp.sum(jnp.square(_times_factor_transpose(a, Linv, edges, nonzero)), axis=1),
+                            chunk)
 
     @filter_jit
     def effective_dof(self) -> Float[Array, ""]:
@@ -167,11 +169,15 @@ class LinearCues(eqx.Module):
         A, Linv, grid = self.T.A, self.inverse_factor, self.T.grid
         e = y - A @ self._estimate_rows(y)
         edges = _factor_edges(Linv.shape[0])
+        nonzero = _factor_blocks(Linv, edges)
 
         def terms(a):
-            z = _times_factor_transpose(a, Linv, edges)  # rows z_i = L^-1 a_i^T:  h_ii = ||z_i||^2
-            w = _times_factor(z, Linv, edges)  # rows w_i = B^-1 a_i^T
-            prior = self.ridge * jnp.sum(w * w, axis=1) + self.smooth * jnp.sum(jnp.square(grid.difference(w.T)), axis=0)
+            z = _times_factor_transpose(a, Linv, edges, nonzero)  # rows z_i = L^-1 a_i^T:  h_ii = ||z_i||^2
+            w = _times_factor(z, Linv, edges, nonzero)  # rows w_i = B^-1 a_i^T
+            # w_i R w_i^T; the smoothing term (row by row, no transposing copy) only where it is weighed
+            differences = lambda w: jnp.sum(jnp.square(jax.vmap(grid.difference)(w)), axis=1)
+            smoothness = jax.lax.cond(self.smooth != 0, differences, lambda w: jnp.zeros(w.shape[0], w.dtype), w)
+            prior = self.ridge * jnp.sum(w * w, axis=1) + self.smooth * smoothness
             return jnp.stack([jnp.sum(z * z, axis=1), prior], axis=1)
 
         h, prior = self._blocks(terms, chunk).T
@@ -256,6 +262,7 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int):
     edges = _factor_edges(A.shape[1])
 
     def refine(Linv):
+        nonzero = _factor_blocks(Linv, edges)
         M = Linv.T  # L^-T
         prior = lr * (Linv @ M)  # L^-1 R L^-T
         if ls is not None:
@@ -263,7 +270,8 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int):
             prior = prior + ls * DM.T @ DM
 
         def add_block(C, start, rows):  # the rows of Q = A L^-T, and C + Q^T Q on and above the diagonal
-            return add_gram_blocks(C, _times_factor_transpose(rows, Linv, edges), edges)
+            Q = _times_factor_transpose(rows, Linv, edges, nonzero)
+            return add_gram_blocks(C, Q, edges, _column_blocks(Q, edges)[1])
 
         C = symmetric_from_blocks(fold_rows(A, add_block, upper_blocks(prior, edges), chunk), edges)
         return jax.scipy.linalg.solve_triangular(cholesky(C), Linv, lower=True)
@@ -281,29 +289,62 @@ def _factor_edges(n: int, parts: int = 4) -> list[int]:
     return list(range(0, n, size)) + [n]
 
 
-def _times_factor_transpose(rows, Linv, edges):
+def _factor_blocks(Linv, edges):
+    """Which blocks `(j, k)`, `k <= j`, of the lower-triangular `L^-1` hold a nonzero: traced flags, `{(j, k): flag}`.
+
+    With the ridge alone (`R = lr I`, the cues' default) the directions that no pixel sees decouple:
+    `B` is block diagonal in them, `B = diag(A_lit^T A_lit + lr I, lr I)`, and so are its Cholesky
+    factor and `L^-1`, exactly (a triangular solve of zeros is zero). Where those directions fill whole
+    column blocks (the lower hemisphere under a floor), the blocks that couple them to the seen ones
+    are zero, and the products below skip them as well as the zero blocks of the rows.
+    """
+    n = len(edges) - 1
+    return {(j, k): jnp.any(Linv[edges[j]:edges[j + 1], edges[k]:edges[k + 1]] != 0)
+            for j in range(n) for k in range(j + 1)}
+
+
+def _column_blocks(rows, edges):
+    """The column blocks of `rows` cut at `edges`, and whether each holds a nonzero (traced flags)."""
+    cols = [rows[:, a:b] for a, b in zip(edges[:-1], edges[1:])]
+    return cols, [jnp.any(c != 0) for c in cols]
+
+
+def _block_product(flag, x, y):
+    """`x @ y`, skipped at run time (`lax.cond`, zeros) when the traced `flag` says an operand is all zero."""
+    skip = lambda a, b: jnp.zeros((a.shape[0], b.shape[1]), a.dtype)
+    return jax.lax.cond(flag, lambda a, b: a @ b, skip, x, y)
+
+
+def _times_factor_transpose(rows, Linv, edges, nonzero):
     """`rows @ L^-T`, the rows `L^-1 a^T`, skipping what is zero.
 
     `L^-1` is lower triangular, so its block `(j, k)` is zero for `k > j`: block column `j` of the
-    product is `sum_{k <= j} rows_k L^-1_jk^T`. A column block `rows_k` that is zero throughout (the
-    sky that the floor hides from every pixel: half the grid for an object on a plane) adds nothing,
-    and its products are skipped at run time (`lax.cond`). With 4 blocks: 10 of the 16 block
-    products, 7 when half the columns are dark.
+    product is `sum_{k <= j} rows_k L^-1_jk^T`. A product whose column block `rows_k` is zero throughout
+    (the sky that the floor hides from every pixel: half the grid for an object on a plane) or whose
+    block of `L^-1` is zero (`nonzero`, from `_factor_blocks`) adds nothing and is skipped at run time
+    (`lax.cond`). With 4 blocks: 10 of the 16 block products; 3 when the ridge alone regularizes and
+    half the columns are dark.
     """
-    cols = [rows[:, a:b] for a, b in zip(edges[:-1], edges[1:])]
-    lit = [jnp.any(c != 0) for c in cols]
-    skip = lambda r, m: jnp.zeros((r.shape[0], m.shape[0]), r.dtype)
+    cols, lit = _column_blocks(rows, edges)
     out = []
     for j in range(len(cols)):
-        terms = [jax.lax.cond(lit[k], lambda r, m: r @ m.T, skip, cols[k],
-                              Linv[edges[j]:edges[j + 1], edges[k]:edges[k + 1]]) for k in range(j + 1)]
+        terms = [_block_product(lit[k] & nonzero[j, k], cols[k], Linv[edges[j]:edges[j + 1], edges[k]:edges[k + 1]].T)
+                 for k in range(j + 1)]
         out.append(sum(terms[1:], terms[0]))
     return jnp.concatenate(out, axis=1)
 
 
-def _times_factor(z, Linv, edges):
-    """`z @ L^-1` for the lower-triangular `L^-1`: block column `k` is `z[:, edges[k]:] L^-1[edges[k]:, k]`."""
-    return jnp.concatenate([z[:, a:] @ Linv[a:, a:b] for a, b in zip(edges[:-1], edges[1:])], axis=1)
+def _times_factor(z, Linv, edges, nonzero):
+    """`z @ L^-1` for the lower-triangular `L^-1`: block column `k` is `sum_{j >= k} z_j L^-1_jk`, skipping
+    the products with an all-zero block `z_j` or `L^-1_jk` (as `_times_factor_transpose`)."""
+    cols, lit = _column_blocks(z, edges)
+    n = len(cols)
+    out = []
+    for k in range(n):
+        terms = [_block_product(lit[j] & nonzero[j, k], cols[j], Linv[edges[j]:edges[j + 1], edges[k]:edges[k + 1]])
+                 for j in range(k, n)]
+        out.append(sum(terms[1:], terms[0]))
+    return jnp.concatenate(out, axis=1)
 
 
 def _passes(dtype, ridge, absolute, target: float = 1e-5) -> int:
