@@ -233,9 +233,28 @@ def test_gram_matrix_skips_zero_blocks_exactly():
     rng = np.random.default_rng(0)
     A = rng.normal(size=(50, 700)).astype(np.float32)
     A[:, 256:600] = 0  # a zero block and a ragged last block
-    for chunk in (2048, 16):  # one row block; three and a shorter last one
+    for chunk in (2048, 16):  # one row block; three, and a last one that overlaps the third by 14 rows
         G = np.asarray(hj.solvers.gram_matrix(jnp.asarray(A), chunk=chunk))
         assert np.allclose(G, A.T.astype(np.float64) @ A, rtol=1e-5, atol=1e-4) and np.array_equal(G, G.T)
+
+
+def test_fold_rows_takes_every_row_once_in_one_compiled_body():
+    """Blocks of 16 of 50 rows: the last starts at row 34, its rows already taken zero for sums, recomputed for writes."""
+    from hiddenjax.solvers._illumination import fold_rows
+
+    A = jnp.arange(50 * 3, dtype=jnp.float32).reshape(50, 3)
+    traced = []
+
+    def add(acc, start, rows):
+        traced.append(rows.shape)
+        return acc + rows.sum(axis=0)
+
+    np.testing.assert_array_equal(fold_rows(A, add, jnp.zeros(3), 16), np.asarray(A).sum(axis=0))
+    assert traced == [(16, 3)]  # one body, no shorter copy
+    put = lambda out, start, rows: jax.lax.dynamic_update_slice_in_dim(out, 2 * rows, start, axis=0)
+    np.testing.assert_array_equal(fold_rows(A, put, jnp.zeros_like(A), 16, overlap="recompute"), 2 * np.asarray(A))
+    with pytest.raises(ValueError, match="overlap must be 'zero' or 'recompute', got 'skip'"):
+        fold_rows(A, add, jnp.zeros(3), 16, overlap="skip")
 
 
 @pytest.fixture(scope="module")

@@ -102,7 +102,7 @@ class LinearCues(eqx.Module):
         A = self.T.A
         shape = jax.eval_shape(fn, jax.ShapeDtypeStruct((min(chunk, A.shape[0]), A.shape[1]), A.dtype))
         put = lambda out, start, rows: jax.lax.dynamic_update_slice_in_dim(out, fn(rows), start, axis=0)
-        return fold_rows(A, put, jnp.zeros((A.shape[0],) + shape.shape[1:], shape.dtype), chunk)
+        return fold_rows(A, put, jnp.zeros((A.shape[0],) + shape.shape[1:], shape.dtype), chunk, overlap="recompute")
 
     @filter_jit
     def leverage(self, chunk: int = _CHUNK) -> Float[Array, " P"]:

@@ -415,17 +415,31 @@ def symmetric_from_blocks(G, edges):
     return jnp.block([[upper[(i, j)] if i <= j else upper[(j, i)].T for j in range(n)] for i in range(n)])
 
 
-def fold_rows(A, fn, init, chunk: int = 2048):
-    """`fn(acc, start, A[start:start + chunk])` folded over the row blocks of `A` in order.
+def fold_rows(A, fn, init, chunk: int = 2048, overlap: str = "zero"):
+    """`fn(acc, start, rows)` folded in order over the row blocks `rows = A[start:start + c]`, `c = min(chunk, P)`.
 
-    The full blocks run in one `lax.fori_loop` (one compiled body), then the last, shorter block, if
-    any. Memory beside `A`: `acc`, one block, and (XLA's loop state) a copy of `A`.
+    One `lax.fori_loop` over `ceil(P / c)` blocks of `c` rows, so `fn` is traced and compiled once (a
+    shorter last block would be a second copy: on the teapot's 15.5k x 2048 transport, 0.45 s of the
+    cue factorization's 1.9 s of compiling). Where `c` does not divide `P`, the last block starts at
+    `P - c` and overlaps the one before it: its rows taken already are zero (`overlap="zero"`, for
+    sums such as `A^T A`) or left as they are (`overlap="recompute"`, for an `fn` that writes its
+    rows' results at `start`: it writes the same values again). Memory beside `A`: `acc`, one block,
+    and (XLA's loop state) a copy of `A`.
     """
+    if overlap not in ("zero", "recompute"):
+        raise ValueError(f"overlap must be 'zero' or 'recompute', got {overlap!r}")
     P = A.shape[0]
     c = min(chunk, P)
-    full = P // c
-    acc = jax.lax.fori_loop(0, full, lambda k, acc: fn(acc, k * c, jax.lax.dynamic_slice_in_dim(A, k * c, c)), init)
-    return fn(acc, full * c, A[full * c :]) if full * c < P else acc
+
+    def block(k, acc):
+        start = jnp.minimum(k * c, P - c)
+        rows = jax.lax.dynamic_slice_in_dim(A, start, c)
+        if P % c and overlap == "zero":
+            fresh = start + jnp.arange(c) >= k * c
+            rows = jnp.where(fresh.reshape((c,) + (1,) * (A.ndim - 1)), rows, 0)
+        return fn(acc, start, rows)
+
+    return jax.lax.fori_loop(0, -(-P // c), block, init)
 
 
 @partial(jit, static_argnames=("grid", "dtype"))
