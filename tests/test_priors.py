@@ -160,6 +160,11 @@ def test_reweighting_assembles_the_weighted_laplacian_and_solves_each_image_alon
     w = np.random.default_rng(0).random((2 * grid.height - 1) * grid.width)
     D = grid.difference_matrix(dense=True)
     assert np.allclose(weighted_laplacian(grid, jnp.asarray(w)), D.T @ np.diag(w) @ D, atol=1e-12)
+    base = np.random.default_rng(2).random((grid.size, grid.size))  # scattered onto a matrix: B = A^T A + R
+    assert np.allclose(weighted_laplacian(grid, jnp.asarray(w), jnp.asarray(base)), base + D.T @ np.diag(w) @ D,
+                       atol=1e-12)
+    assert np.allclose(hj.solvers.prior_matrix(grid, 0.3, 0.2, jnp.float64), 0.3 * D.T @ D + 0.2 * np.eye(grid.size),
+                       atol=1e-12)
     x = jnp.asarray(np.random.default_rng(1).random((grid.size, 3)))
     weights = np.asarray(log_domain_weights(grid, x, 0.5))
     assert weights.mean() == pytest.approx(1.0) and np.all(weights > 0)

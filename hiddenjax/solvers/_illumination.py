@@ -225,9 +225,9 @@ class L2Prior(Prior):
             if self.adapt:
                 smooth = jnp.where(k == min(1, self.reweight - 1), op.smooth * self.spread_factor(x, jnp.diagonal(gram)),
                                    smooth)
-            R = smooth * weighted_laplacian(grid, log_domain_weights(grid, x, self.floor)) + op.ridge * jnp.eye(
-                grid.size, dtype=gram.dtype)
-            return gram + R, _cholesky(gram + R), R, smooth
+            w, ridge = smooth * log_domain_weights(grid, x, self.floor), op.ridge * jnp.eye(grid.size, dtype=gram.dtype)
+            B = weighted_laplacian(grid, w, gram + ridge)  # scattered onto A^T A (weighted_laplacian)
+            return B, _cholesky(B), weighted_laplacian(grid, w, ridge), smooth
 
         keep = lambda k, x, smooth: (B, factor, R, smooth)
         B, factor, R, smooth = jax.lax.cond(k < self.passes(), reweight, keep, k, x, smooth)
@@ -255,12 +255,18 @@ class L2Prior(Prior):
         return x, objective, _kkt_residual(grad, c, x, nonneg), steps, result, None, smooth
 
 
-def weighted_laplacian(grid, w) -> Float[Array, "N N"]:
-    """`D^T diag(w) D`, `(N, N)`, assembled edge by edge (`w ((2H-1) W,)`, one weight per row of `D`)."""
+def weighted_laplacian(grid, w, base=None) -> Float[Array, "N N"]:
+    """`base + D^T diag(w) D`, `(N, N)` (`base` default zero; `w ((2H-1) W,)`, one weight per row of `D`).
+
+    Row `e` of `D` is `x_i - x_j`, so it adds `w_e` at `(i, i)` and `(j, j)` and `-w_e` at `(i, j)` and
+    `(j, i)`: one scatter of those `4 (2H-1) W` entries onto `base`. Scattered onto `A^T A + ridge I`,
+    the normal matrix is one buffer: the dense prior added to `A^T A` was fused into the Cholesky
+    factorization's scaling, which then took 110-125 ms at 32x64 instead of 60-70 (2 cores).
+    """
     i, j = grid.difference_pairs()
-    L = jnp.zeros((grid.size, grid.size), w.dtype)
-    L = L.at[i, i].add(w).at[j, j].add(w)
-    return L.at[i, j].add(-w).at[j, i].add(-w)
+    base = jnp.zeros((grid.size, grid.size), jnp.result_type(w)) if base is None else base
+    w = jnp.asarray(w, base.dtype)
+    return base.at[np.concatenate([i, j, i, j]), np.concatenate([i, j, j, i])].add(jnp.concatenate([w, w, -w, -w]))
 
 
 def log_domain_weights(grid, x, floor):
@@ -444,9 +450,10 @@ def fold_rows(A, fn, init, chunk: int = 2048, overlap: str = "zero"):
 
 @partial(jit, static_argnames=("grid", "dtype"))
 def prior_matrix(grid, smooth, ridge, dtype=jnp.float32) -> Float[Array, "N N"]:
-    """`R = smooth D^T D + ridge I` with absolute weights, `(N, N)` (one program per grid and dtype)."""
-    eye = jnp.eye(grid.size, dtype=dtype)
-    return smooth * jax.vmap(grid.difference_gram)(eye) + ridge * eye  # rows of D^T D (symmetric)
+    """`R = smooth D^T D + ridge I` with absolute weights, `(N, N)` (one program per grid and dtype),
+    scattered onto `ridge I` (`weighted_laplacian`)."""
+    edges = len(grid.difference_pairs()[0])
+    return weighted_laplacian(grid, jnp.full(edges, smooth, dtype), jnp.eye(grid.size, dtype=dtype) * ridge)
 
 
 def normal_matrix(T, smooth, ridge) -> Float[Array, "N N"]:
