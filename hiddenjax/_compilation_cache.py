@@ -28,8 +28,11 @@ from pathlib import Path
 
 import jax
 
+from . import _program_store
+
 ENVIRONMENT = "HIDDENJAX_CACHE"
 OFF = ("off", "0", "false", "no", "none")
+PROGRAMS = "hiddenjax-programs"  # the traced programs' folder inside the cache (`_program_store`)
 MAX_BYTES = 4 << 30  # JAX evicts the least recently used programs past this (and then reads and writes take a lock)
 
 
@@ -69,6 +72,7 @@ def enable_compilation_cache(path=None) -> Path | None:
     setting when it first compiles.
     """
     if path is None and compilation_cache_dir() is not None:
+        _program_store.enable(compilation_cache_dir() / PROGRAMS)
         return compilation_cache_dir()
     if path is None:
         chosen = os.environ.get(ENVIRONMENT, "").strip()
@@ -86,6 +90,7 @@ def enable_compilation_cache(path=None) -> Path | None:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
     if _has_filelock():
         jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    _program_store.enable(folder / PROGRAMS)
     return folder
 
 

@@ -30,6 +30,8 @@ import jax
 import jaxlib
 import numpy as np
 
+from . import _program_store
+
 
 def _jaxlib_line() -> tuple[int, int]:
     major, minor = (jaxlib.__version__.split(".") + ["0"])[:2]
@@ -70,6 +72,8 @@ def _top_level_options(make, fun, kwargs, runs_long):
     """
     options = _RUNS_LONG_OPTIONS if runs_long else COMPILER_OPTIONS
     own, nested = make(fun, compiler_options=options, **kwargs), make(fun, **kwargs)
+    if make is eqx.filter_jit and not kwargs:  # kept on disk once enable_compilation_cache() is called
+        own = _program_store.stored_call(fun, options, own)
 
     @functools.wraps(fun)
     def call(*args, **kw):

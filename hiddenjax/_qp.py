@@ -12,6 +12,8 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+
+from . import _program_store
 from ._jit import filter_jit, jit
 
 NOT_POSITIVE_DEFINITE = (
@@ -24,6 +26,7 @@ NOT_POSITIVE_DEFINITE = (
 SUCCESS, MAX_STEPS = 0, 1
 
 _HOST_CHECKS = contextvars.ContextVar("hiddenjax_host_checks", default=False)
+_program_store.TRACE_CONTEXT.append(_HOST_CHECKS)  # a stored program is keyed on it
 
 
 @contextlib.contextmanager

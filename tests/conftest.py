@@ -67,6 +67,17 @@ def pytest_configure(config):
             shutil.rmtree(COMPILATION_CACHE, ignore_errors=True)
 
 
+@pytest.fixture(autouse=True)
+def _no_program_store():
+    """Each test starts with hiddenjax's traced-program store off (`enable_compilation_cache`, which a command
+    run in the process calls, turns it on): what a test traces, or counts, does not depend on the tests before
+    it. The scripts and commands it starts keep theirs."""
+    from hiddenjax import _program_store
+
+    _program_store.enable(None)
+    yield
+
+
 @pytest.fixture
 def getkey():
     keys = iter(jax.random.split(jax.random.key(0), 1000))

@@ -7,6 +7,7 @@ import sys
 import warnings
 from pathlib import Path
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -193,6 +194,9 @@ from jax import monitoring
 events = []
 monitoring.register_event_listener(lambda name, **kw: events.append(name))
 import hiddenjax as hj
+from hiddenjax import _qp
+traced = []  # the exact solver's traces: none where its program comes from the store
+_qp.solve_from = lambda *a, f=_qp.solve_from, **k: traced.append(1) or f(*a, **k)
 hj.enable_compilation_cache()
 setup = hj.scenes.object_on_plane("sphere", width=16, height=16)
 grid = hj.EnvGrid(4, 8)
@@ -203,13 +207,14 @@ env = np.asarray(hj.solve_illumination(T, photo).env)
 cues = np.asarray(hj.cues.leverage(T))
 later = events[start:]
 print(json.dumps(dict(misses=later.count("/jax/compilation_cache/cache_misses"),
-                      hits=later.count("/jax/compilation_cache/cache_hits"), env=float(env.sum()))))
+                      hits=later.count("/jax/compilation_cache/cache_hits"), env=float(env.sum()),
+                      solver_traces=len(traced), stored=len(list(hj.enable_compilation_cache().glob("*/_solve-*"))))))
 """
 
 
 def test_the_solve_and_the_cues_are_loaded_from_the_cache_in_a_second_process(tmp_path):
     """Their programs carry no host callback (JAX keys those on the callback's address in one process, so a
-    later process never finds them): the checks run on the host."""
+    later process never finds them): the checks run on the host. Nor are they traced again."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
     env.update(JAX_PLATFORMS="cpu", HIDDENJAX_CACHE=str(tmp_path / "cache"))
     runs = []
@@ -221,6 +226,9 @@ def test_the_solve_and_the_cues_are_loaded_from_the_cache_in_a_second_process(tm
     assert runs[0]["misses"] >= 3  # the build, the solve, the cue factorization and map: compiled
     assert runs[1]["misses"] == 0 and runs[1]["hits"] >= runs[0]["misses"], runs
     assert runs[1]["env"] == runs[0]["env"]
+    # and its traced programs are kept (`_program_store`): the second process does not trace the solver again
+    assert runs[0]["solver_traces"] >= 1 and runs[0]["stored"] == 1
+    assert runs[1]["solver_traces"] == 0, runs
 
 
 def test_every_program_of_the_package_is_compiled_with_its_compiler_options():
@@ -230,7 +238,7 @@ def test_every_program_of_the_package_is_compiled_with_its_compiler_options():
 
     bare = []
     for path in Path(hj.__file__).parent.rglob("*.py"):
-        if path.name == "_jit.py":
+        if path.name in ("_jit.py", "_program_store.py"):  # the store compiles with the options `_jit` hands it
             continue
         for number, line in enumerate(path.read_text().splitlines(), 1):
             code = line.split("#")[0]
@@ -336,3 +344,116 @@ def test_a_shipped_corner_network_loads_and_tracks_in_a_few_programs():
     size = hc.pretrained_info("L", "fixed-lamp")["architecture"]["size"]
     frames = np.random.default_rng(0).normal(0.0, 1e-3, (3, size, size)).astype(np.float32)
     assert lowered_programs(lambda: hc.track(model, frames, batch=4)) <= 2
+
+
+class Shifted(eqx.Module):  # arrays and a static field, as hiddenjax's results
+    value: jnp.ndarray
+    label: str = eqx.field(static=True)
+
+
+TRACES = []
+
+
+def shifted(x, scale, shift, label):
+    """A program of arrays (`x`, numpy `scale`), a static number (`shift`) and string; returns `x` itself too."""
+    TRACES.append(label)
+    return x, Shifted(x * scale + shift, label), jnp.asarray(2.0) * shift, 3
+
+
+def stored(folder):
+    """`shifted` as hiddenjax's own functions are wrapped, with a store in `folder`: a new wrapper is a new process."""
+    from hiddenjax import _program_store
+    from hiddenjax._jit import filter_jit
+
+    _program_store.enable(folder)
+    return filter_jit(shifted)
+
+
+@pytest.fixture
+def program_store(tmp_path):
+    from hiddenjax import _program_store
+
+    yield tmp_path / "programs"
+    _program_store.enable(None)
+
+
+def test_a_stored_program_is_not_traced_again_and_returns_what_the_traced_one_does(program_store):
+    import jax
+
+    x, scale = jnp.arange(6.0).reshape(2, 3), np.float32(0.5)
+    plain = eqx.filter_jit(shifted)(x, scale, 1.5, "a")
+    TRACES.clear()
+    first = stored(program_store)(x, scale, 1.5, "a")
+    assert TRACES == ["a"] and len(list(program_store.iterdir())) == 1  # traced once, kept
+    again = stored(program_store)(x, scale, 1.5, "a")  # a new wrapper: nothing in memory, as in a new process
+    assert TRACES == ["a"], "the stored program was traced again"
+    for out in (first, again):
+        assert out[0] is x  # an argument returned as it is stays that array (no copy of an operator's A)
+        assert isinstance(out[1], Shifted) and out[1].label == "a" and out[3] == 3
+        assert np.array_equal(out[1].value, plain[1].value) and float(out[2]) == float(plain[2]) == 3.0
+        assert jax.typeof(out[2]).weak_type == jax.typeof(plain[2]).weak_type  # weak types as traced
+    # another static value or shape is another program; a staged call is part of its caller's program
+    stored(program_store)(x, scale, 2.5, "a")
+    stored(program_store)(x[:1], scale, 1.5, "a")
+    assert TRACES == ["a", "a", "a"] and len(list(program_store.iterdir())) == 3
+    assert float(jax.jit(lambda x: stored(program_store)(x, scale, 1.5, "a")[1].value.sum())(x)) == 16.5
+    assert len(list(program_store.iterdir())) == 3
+    # JAX's settings are part of the key: a float64 argument is float32 without x64, float64 with it
+    wide, call = np.arange(3.0), stored(program_store)
+    assert call(wide, scale, 1.0, "a")[1].value.dtype == jnp.float32
+    with jax.enable_x64():
+        assert call(wide, scale, 1.0, "a")[1].value.dtype == jnp.float64
+    assert len(list(program_store.iterdir())) == 5
+
+
+def test_a_damaged_or_unstorable_program_is_traced_as_before(program_store):
+    import jax
+
+    x, scale = jnp.arange(3.0), np.float32(2.0)
+    stored(program_store)(x, scale, 0.0, "b")
+    (entry,) = program_store.iterdir()
+    entry.write_bytes(b"half an entry")  # damaged (or from another version of JAX): exported and written again
+    TRACES.clear()
+    assert np.array_equal(stored(program_store)(x, scale, 0.0, "b")[1].value, [0.0, 2.0, 4.0]) and TRACES == ["b"]
+    stored(program_store)(x, scale, 0.0, "b")
+    assert TRACES == ["b"]
+    # a static argument that does not pickle is not keyed: traced in each process, never stored
+    label = lambda: "c"  # noqa: E731
+    out = stored(program_store)(x, scale, 1.0, label)
+    assert np.array_equal(out[1].value, [1.0, 3.0, 5.0]) and len(list(program_store.iterdir())) == 1
+    # a folder that cannot be created: one warning, and the store stays off
+    from hiddenjax import _program_store
+
+    a_file = program_store.parent / "file"
+    a_file.write_text("x")
+    # jax.clear_caches() turns the store off in the process: a later call traces again, as after the clear
+    store = stored(program_store)
+    jax.clear_caches()
+    assert _program_store.folder() is None
+    TRACES.clear()
+    store(x, scale, 0.0, "b")
+    assert TRACES == ["b"]
+    with pytest.warns(RuntimeWarning, match="traced programs will not be kept: cannot create"):
+        _program_store.enable(a_file / "programs")
+    assert _program_store.folder() is None and float(stored(None)(x, scale, 0.0, "b")[2]) == 0.0
+
+
+def checked(x):
+    """A program with a host callback (`eqx.error_if`), which `jax.export` does not serialize."""
+    TRACES.append("checked")
+    return eqx.error_if(x, x < 0, "negative")
+
+
+def test_a_program_that_cannot_be_exported_is_marked_and_traced_as_before(program_store, monkeypatch):
+    from hiddenjax import _program_store
+    from hiddenjax._jit import filter_jit
+
+    exports = []
+    monkeypatch.setattr(_program_store, "_export", lambda *a, f=_program_store._export: exports.append(1) or f(*a))
+    _program_store.enable(program_store)
+    assert float(filter_jit(checked)(jnp.float32(2.0))) == 2.0
+    assert [p.suffix for p in program_store.iterdir()] == [".none"] and len(exports) == 1  # tried once on a machine
+    assert float(filter_jit(checked)(jnp.float32(3.0))) == 3.0  # a new wrapper: straight to the traced program
+    assert len(exports) == 1
+    with pytest.raises(Exception, match="negative"):
+        filter_jit(checked)(jnp.float32(-1.0))
