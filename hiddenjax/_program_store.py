@@ -9,8 +9,9 @@ to lower and 0.3 s to load, then 0.2 s to run. This store keeps each program as 
 reads, so a later process deserializes it (a few ms), and JAX's cache serves the executable.
 
 The key of a call of a `filter_jit` function is a hash of: the function's module and qualified
-name; the source of every hiddenjax module; the versions of jax, jaxlib, numpy and equinox; JAX's
-configuration (`jax.config.values`) and default backend; the pytree of the arguments, arrays as
+name; the source of every hiddenjax module; the versions of jax, jaxlib, numpy, equinox and Python;
+JAX's settings that change a trace (those `jax.jit` keys its programs on: x64, promotion rules, ...)
+and default backend; the pytree of the arguments, arrays as
 their shape, dtype and weak type (the dynamic arguments) and everything else as pickled (the
 static ones, as `eqx.filter_jit` treats them). A call that cannot be keyed so (an argument that
 does not pickle, an array on another backend or sharded over devices, a function defined inside
@@ -220,10 +221,15 @@ def _load_or_export(fun, options, signature, args, kwargs):
         computed = iter(run(*dynamic))
         leaves, treedef = jax.tree_util.tree_flatten(skeleton, is_leaf=lambda x: isinstance(x, _Input))
         return jax.tree_util.tree_unflatten(treedef, [
-            next(computed) if isinstance(x, _Array) else dynamic[x.index] if isinstance(x, _Input) else x
+            next(computed) if isinstance(x, _Array) else _as_jax(dynamic[x.index]) if isinstance(x, _Input) else x
             for x in leaves])
 
     return program
+
+
+def _as_jax(x):
+    """An argument returned as it is, as a jitted function returns it: a JAX array (numpy transferred, no program)."""
+    return x if isinstance(x, jax.Array) else jax.device_put(x)
 
 
 def _export(fun, args, kwargs):

@@ -389,6 +389,7 @@ def test_a_stored_program_is_not_traced_again_and_returns_what_the_traced_one_do
     assert TRACES == ["a"], "the stored program was traced again"
     for out in (first, again):
         assert out[0] is x  # an argument returned as it is stays that array (no copy of an operator's A)
+        assert isinstance(stored(program_store)(np.asarray(x), scale, 1.5, "a")[0], jax.Array)  # numpy too, as jit
         assert isinstance(out[1], Shifted) and out[1].label == "a" and out[3] == 3
         assert np.array_equal(out[1].value, plain[1].value) and float(out[2]) == float(plain[2]) == 3.0
         assert jax.typeof(out[2]).weak_type == jax.typeof(plain[2]).weak_type  # weak types as traced
