@@ -16,7 +16,9 @@ other's half-written entries. On GPUs XLA's per-fusion autotuning results are ke
 (JAX's `jax_persistent_cache_enable_xla_caches` default).
 
 `HIDDENJAX_CACHE` moves the cache (a folder) or turns it off (`off`, `0`, `false`, `no`); a cache
-chosen through JAX itself (`JAX_COMPILATION_CACHE_DIR` or `jax.config`) is left as it is.
+chosen through JAX itself (`JAX_COMPILATION_CACHE_DIR` or `jax.config`) is left as it is. Beside the
+compiled programs, in its folder `hiddenjax-programs`, hiddenjax keeps its own programs as traced
+(`_program_store`), so that a later process neither traces nor lowers them to find them.
 """
 
 import os
@@ -63,6 +65,8 @@ def enable_compilation_cache(path=None) -> Path | None:
     **Arguments:**
     - `path`: the cache folder; default `HIDDENJAX_CACHE` if set (a folder, or `off`), else
       `default_cache_dir()`. It is created private to its owner (mode 0700).
+
+    hiddenjax's own traced programs are kept in its folder `hiddenjax-programs` (module doc).
 
     **Returns:** the folder in use, or None when the cache stays off (turned off, or the folder is
     not usable: then a warning says why and the run goes on compiling as usual). A cache already

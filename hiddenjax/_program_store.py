@@ -36,7 +36,11 @@ from pathlib import Path
 import equinox as eqx
 import jax
 import numpy as np
-from jax._src.lax.lax import _convert_element_type  # the only way to a weakly typed array (JAX's own casts)
+
+try:  # the only way to a weakly typed array (JAX's own casts); private, so a JAX without it keeps the store off
+    from jax._src.lax.lax import _convert_element_type
+except ImportError:
+    _convert_element_type = None
 
 MAX_BYTES = 256 << 20
 _folder: Path | None = None
@@ -68,7 +72,7 @@ def enable(folder) -> None:
     cannot be created is a warning, and the store stays off."""
     global _folder
     _folder = None
-    if folder is None:
+    if folder is None or _convert_element_type is None:
         return
     try:
         Path(folder).mkdir(mode=0o700, parents=True, exist_ok=True)
