@@ -128,10 +128,9 @@ def _trace_context() -> tuple:
     return values + tuple(var.get() for var in TRACE_CONTEXT)
 
 
-def _signature(args, kwargs):
-    """`(key in memory, skeleton)` of a call: the arrays as `(shape, dtype, weak type)`, the rest as it is;
-    None where it cannot be stored (a traced, sharded or other-backend array, an unhashable static leaf)."""
-    leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
+def _described(leaves) -> tuple | None:
+    """A call's leaves for its key: arrays as `("array", shape, dtype, weak type)`, the rest `(type, leaf)`;
+    None where it cannot be stored (a traced, sharded or other-backend array)."""
     backend = jax.default_backend()
     described = []
     for leaf in leaves:
@@ -145,22 +144,17 @@ def _signature(args, kwargs):
             described.append(("array", np.shape(leaf), str(np.result_type(leaf)), False))
         else:
             described.append((type(leaf), leaf))
-    try:
-        hash(treedef)
-        hash(tuple(described))
-    except TypeError:
-        return None
-    return treedef, tuple(described)
+    return tuple(described)
 
 
 def _disk_key(fun, signature) -> str | None:
     """The file name of a call's program: a hash of what its tracing reads (module doc); None if it does not pickle."""
     if "<" in fun.__qualname__:  # a lambda or a function inside another: its closure is not in the key
         return None
-    treedef, described = signature
+    treedef, described, context = signature
     skeleton = jax.tree_util.tree_unflatten(treedef, [d if d[0] == "array" else d[1] for d in described])
     try:
-        context = [type(v).__name__ if " at 0x" in repr(v) else repr(v) for v in _trace_context()]  # lasting text
+        context = [type(v).__name__ if " at 0x" in repr(v) else repr(v) for v in context]  # lasting text
         blob = pickle.dumps((fun.__module__, fun.__qualname__, skeleton, context, jax.default_backend()), protocol=4)
     except Exception:  # noqa: BLE001  (a static argument that does not pickle: not stored)
         return None
@@ -176,21 +170,24 @@ def stored_call(fun, options: dict, fallback):
     def call(*args, **kwargs):
         if _folder is None:
             return fallback(*args, **kwargs)
-        signature = _signature(args, kwargs)
-        if signature is None:
+        leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
+        described = _described(leaves)
+        signature = (treedef, described, _trace_context())
+        try:
+            known = described is None or signature in programs
+        except TypeError:  # an unhashable static leaf: traced, as eqx.filter_jit takes it
             return fallback(*args, **kwargs)
-        signature = (signature, _trace_context())
-        if signature not in programs:
-            programs[signature] = _load_or_export(fun, options, signature[0], args, kwargs)
-        program = programs[signature]
+        if not known:
+            programs[signature] = _load_or_export(fun, options, signature, leaves)
+        program = None if described is None else programs[signature]
         if program is None:
             return fallback(*args, **kwargs)
-        return program(args, kwargs)
+        return program([leaf for leaf in leaves if eqx.is_array(leaf)])
 
     return call
 
 
-def _load_or_export(fun, options, signature, args, kwargs):
+def _load_or_export(fun, options, signature, leaves):
     """The caller of a call's stored program (exported and stored first if it is not yet), or None."""
     key = _disk_key(fun, signature)
     if key is None:
@@ -204,7 +201,7 @@ def _load_or_export(fun, options, signature, args, kwargs):
         exported = jax.export.deserialize(serialized)
     except Exception:  # noqa: BLE001  (missing, unreadable, from another version: export it again)
         try:
-            made = _export(fun, args, kwargs)
+            made = _export(fun, leaves, signature[0])
         except ImportError:  # no `flatbuffers` to serialize with: traced as before
             return None
         if made is None:  # not exported (its tracing then runs twice, this once): no later process tries again
@@ -215,18 +212,19 @@ def _load_or_export(fun, options, signature, args, kwargs):
         exported = jax.export.deserialize(serialized)  # as a later process reads it
 
     def outputs(*dynamic):  # a serialized program's outputs lose their weak types: given back, as traced
-        return [_convert_element_type(x, x.dtype, weak_type=w) if w else x for x, w in zip(exported.call(*dynamic), weak)]
+        computed = exported.call(*dynamic)
+        return [_convert_element_type(x, x.dtype, weak_type=w) if w else x for x, w in zip(computed, weak)]
 
     outputs.__name__ = outputs.__qualname__ = fun.__name__  # the program's name in JAX's logs and cache
     run = jax.jit(outputs, compiler_options=options)
 
-    def program(args, kwargs):
-        dynamic = [leaf for leaf in jax.tree_util.tree_leaves((args, kwargs)) if eqx.is_array(leaf)]
+    slots, out_treedef = jax.tree_util.tree_flatten(skeleton, is_leaf=lambda x: isinstance(x, _Input))
+
+    def program(dynamic):
         computed = iter(run(*dynamic))
-        leaves, treedef = jax.tree_util.tree_flatten(skeleton, is_leaf=lambda x: isinstance(x, _Input))
-        return jax.tree_util.tree_unflatten(treedef, [
+        return jax.tree_util.tree_unflatten(out_treedef, [
             next(computed) if isinstance(x, _Array) else _as_jax(dynamic[x.index]) if isinstance(x, _Input) else x
-            for x in leaves])
+            for x in slots])
 
     return program
 
@@ -236,10 +234,9 @@ def _as_jax(x):
     return x if isinstance(x, jax.Array) else jax.device_put(x)
 
 
-def _export(fun, args, kwargs):
-    """`(serialized jax.export.Exported of fun on the call's arrays, output skeleton, the outputs' weak types)`,
-    or None where it cannot be exported."""
-    leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
+def _export(fun, leaves, treedef):
+    """`(serialized jax.export.Exported of fun on the call's arrays, output skeleton, the outputs' weak types)`
+    for the call whose `(args, kwargs)` flatten to `leaves, treedef`, or None where it cannot be exported."""
     is_dynamic = [eqx.is_array(leaf) for leaf in leaves]
     traced = []
 

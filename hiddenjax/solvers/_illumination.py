@@ -225,9 +225,10 @@ class L2Prior(Prior):
             if self.adapt:
                 smooth = jnp.where(k == min(1, self.reweight - 1), op.smooth * self.spread_factor(x, jnp.diagonal(gram)),
                                    smooth)
-            w, ridge = smooth * log_domain_weights(grid, x, self.floor), op.ridge * jnp.eye(grid.size, dtype=gram.dtype)
-            B = weighted_laplacian(grid, w, gram + ridge)  # scattered onto A^T A (weighted_laplacian)
-            return B, _cholesky(B), weighted_laplacian(grid, w, ridge), smooth
+            w = smooth * log_domain_weights(grid, x, self.floor)
+            ridge_eye = op.ridge * jnp.eye(grid.size, dtype=gram.dtype)
+            B = weighted_laplacian(grid, w, gram + ridge_eye)  # scattered onto A^T A (weighted_laplacian)
+            return B, _cholesky(B), weighted_laplacian(grid, w, ridge_eye), smooth
 
         keep = lambda k, x, smooth: (B, factor, R, smooth)
         B, factor, R, smooth = jax.lax.cond(k < self.passes(), reweight, keep, k, x, smooth)
@@ -256,7 +257,8 @@ class L2Prior(Prior):
 
 
 def weighted_laplacian(grid, w, base=None) -> Float[Array, "N N"]:
-    """`base + D^T diag(w) D`, `(N, N)` (`base` default zero; `w ((2H-1) W,)`, one weight per row of `D`).
+    """`base + D^T diag(w) D`, `(N, N)` (`base` default zero; `w ((2H-1) W,)`, one weight per row of `D`,
+    or a scalar for every row).
 
     Row `e` of `D` is `x_i - x_j`, so it adds `w_e` at `(i, i)` and `(j, j)` and `-w_e` at `(i, j)` and
     `(j, i)`: one scatter of those `4 (2H-1) W` entries onto `base`. Scattered onto `A^T A + ridge I`,
@@ -265,7 +267,7 @@ def weighted_laplacian(grid, w, base=None) -> Float[Array, "N N"]:
     """
     i, j = grid.difference_pairs()
     base = jnp.zeros((grid.size, grid.size), jnp.result_type(w)) if base is None else base
-    w = jnp.asarray(w, base.dtype)
+    w = jnp.broadcast_to(jnp.asarray(w, base.dtype), i.shape)
     return base.at[np.concatenate([i, j, i, j]), np.concatenate([i, j, j, i])].add(jnp.concatenate([w, w, -w, -w]))
 
 
@@ -452,8 +454,7 @@ def fold_rows(A, fn, init, chunk: int = 2048, overlap: str = "zero"):
 def prior_matrix(grid, smooth, ridge, dtype=jnp.float32) -> Float[Array, "N N"]:
     """`R = smooth D^T D + ridge I` with absolute weights, `(N, N)` (one program per grid and dtype),
     scattered onto `ridge I` (`weighted_laplacian`)."""
-    edges = len(grid.difference_pairs()[0])
-    return weighted_laplacian(grid, jnp.full(edges, smooth, dtype), jnp.eye(grid.size, dtype=dtype) * ridge)
+    return weighted_laplacian(grid, smooth, jnp.eye(grid.size, dtype=dtype) * ridge)
 
 
 def normal_matrix(T, smooth, ridge) -> Float[Array, "N N"]:
