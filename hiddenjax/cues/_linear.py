@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from ..solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, gram_matrix, prior_matrix, regularization_weights
 from ..solvers._illumination import (_check_image, _check_weights, _traced_weights, add_gram_blocks, fold_rows,
@@ -45,13 +45,16 @@ class LinearCues(eqx.Module):
     singular (zero weights and a rank-deficient `A`).
 
     **Fields:** `T` the transport matrix; `inverse_factor (N, N)` `L^-1` with `B = L L^T`;
-    `smooth`, `ridge` the absolute weights (docs/conventions.md, "Regularization weights").
+    `smooth`, `ridge` the absolute weights (docs/conventions.md, "Regularization weights");
+    `columns`: the columns of `A` that the factorization and the maps' products run on (`kept_columns`:
+    with the ridge alone, those some pixel sees), or None for all.
     """
 
     T: TransportMatrix
     inverse_factor: Float[Array, "N N"]
     smooth: Float[Array, ""]
     ridge: Float[Array, ""]
+    columns: Int[Array, " m"] | None = None
 
     @classmethod
     def build(cls, T: TransportMatrix, ridge=DEFAULT_RIDGE, smooth=0.0, absolute: bool = False,
@@ -80,14 +83,15 @@ class LinearCues(eqx.Module):
         passes = _passes(T.A.dtype, ridge, absolute)
         weights = _traced_weights((ridge, smooth))  # arguments, not constants: one program for every weight
         if method == "cholesky":
-            cues, finite = _factorize(T, *weights, absolute, with_smooth, "cholesky", chunk, qr_chunk, passes)
+            columns = None if with_smooth or isinstance(T.A, jax.core.Tracer) else kept_columns(T.A)
+            cues, finite = _factorize(T, *weights, absolute, with_smooth, "cholesky", chunk, qr_chunk, passes, columns)
             if isinstance(finite, jax.core.Tracer):  # under a caller's trace: the check is an error of its program
                 return _checked(cues, finite)
             if bool(finite):
                 return cues
             # the shift (from the mean of diag(A^T A)) fell short of the rounding of the formed A^T A,
             # which scales with its largest eigenvalue: a strongly correlated A
-        cues, finite = _factorize(T, *weights, absolute, with_smooth, "qr", chunk, qr_chunk, passes)
+        cues, finite = _factorize(T, *weights, absolute, with_smooth, "qr", chunk, qr_chunk, passes, None)
         if isinstance(finite, jax.core.Tracer):
             return _checked(cues, finite)
         if not bool(finite):
@@ -97,9 +101,16 @@ class LinearCues(eqx.Module):
                           f"{jnp.dtype(T.A.dtype).name}; the cues use the QR factorization instead", stacklevel=2)
         return cues
 
+    def _kept_factor(self):
+        """`L^-1` on the kept columns, `(m, m)`, and its products' column blocks and nonzero blocks (see `_factor_blocks`)."""
+        Linv = self.inverse_factor if self.columns is None else self.inverse_factor[self.columns][:, self.columns]
+        edges = _factor_edges(Linv.shape[0])
+        return Linv, edges, _factor_blocks(Linv, edges)
+
     def _blocks(self, fn, chunk: int):
-        """Apply `fn(rows_of_A) -> (c, ...)` to row blocks of `A` and gather `(P, ...)` (see `fold_rows`)."""
-        A = self.T.A
+        """Apply `fn(rows) -> (c, ...)` to row blocks of `A`, its kept columns (`columns`), and gather `(P, ...)`
+        (see `fold_rows`)."""
+        A = _kept(self.T.A, self.columns)
         shape = jax.eval_shape(fn, jax.ShapeDtypeStruct((min(chunk, A.shape[0]), A.shape[1]), A.dtype))
         put = lambda out, start, rows: jax.lax.dynamic_update_slice_in_dim(out, fn(rows), start, axis=0)
         return fold_rows(A, put, jnp.zeros((A.shape[0],) + shape.shape[1:], shape.dtype), chunk, overlap="recompute")
@@ -107,9 +118,7 @@ class LinearCues(eqx.Module):
     @filter_jit
     def leverage(self, chunk: int = _CHUNK) -> Float[Array, " P"]:
         """`h_ii = a_i (A^T A + R)^-1 a_i^T` (eq. 6.2) for every observed pixel, `(P,)` in `[0, 1]`."""
-        Linv = self.inverse_factor
-        edges = _factor_edges(Linv.shape[0])
-        nonzero = _factor_blocks(Linv, edges)
+        Linv, edges, nonzero = self._kept_factor()
         return self._blocks(lambda a: jnp.sum(jnp.square(_times_factor_transpose(a, Linv, edges, nonzero)), axis=1),
                             chunk)
 
@@ -166,18 +175,20 @@ class LinearCues(eqx.Module):
         return _influence(self, y, chunk)
 
     def _influence(self, y, chunk):
-        A, Linv, grid = self.T.A, self.inverse_factor, self.T.grid
+        A, grid = self.T.A, self.T.grid
         e = y - A @ self._estimate_rows(y)
-        edges = _factor_edges(Linv.shape[0])
-        nonzero = _factor_blocks(Linv, edges)
+        Linv, edges, nonzero = self._kept_factor()
 
         def terms(a):
             z = _times_factor_transpose(a, Linv, edges, nonzero)  # rows z_i = L^-1 a_i^T:  h_ii = ||z_i||^2
             w = _times_factor(z, Linv, edges, nonzero)  # rows w_i = B^-1 a_i^T
-            # w_i R w_i^T; the smoothing term (row by row, no transposing copy) only where it is weighed
-            differences = lambda w: jnp.sum(jnp.square(jax.vmap(grid.difference)(w)), axis=1)
-            smoothness = jax.lax.cond(self.smooth != 0, differences, lambda w: jnp.zeros(w.shape[0], w.dtype), w)
-            prior = self.ridge * jnp.sum(w * w, axis=1) + self.smooth * smoothness
+            # w_i R w_i^T; the smoothing term (row by row, no transposing copy) only where it is weighed (never
+            # with kept columns: they are the ridge's alone)
+            prior = self.ridge * jnp.sum(w * w, axis=1)
+            if self.columns is None:
+                differences = lambda w: jnp.sum(jnp.square(jax.vmap(grid.difference)(w)), axis=1)
+                zero = lambda w: jnp.zeros(w.shape[0], w.dtype)
+                prior = prior + self.smooth * jax.lax.cond(self.smooth != 0, differences, zero, w)
             return jnp.stack([jnp.sum(z * z, axis=1), prior], axis=1)
 
         h, prior = self._blocks(terms, chunk).T
@@ -199,13 +210,13 @@ class LinearCues(eqx.Module):
 
 
 @filter_jit
-def _factorize(T, ridge, smooth, absolute, with_smooth, method, chunk, qr_chunk, passes):
+def _factorize(T, ridge, smooth, absolute, with_smooth, method, chunk, qr_chunk, passes, columns):
     """`(LinearCues, whether L^-1 is finite)`: the factorization of `LinearCues.build`, one program per method."""
     ls, lr = regularization_weights(T, smooth, ridge, absolute)
     A, grid = T.A, T.grid
     eye = jnp.eye(grid.size, dtype=A.dtype)
     if method == "cholesky":
-        inverse = _refined_inverse_factor(A, grid, ls if with_smooth else None, lr, chunk, passes)
+        inverse = _refined_inverse_factor(A, grid, ls if with_smooth else None, lr, chunk, passes, columns)
     else:
         R = jnp.sqrt(lr) * eye  # the prior rows' R factor, exact for the ridge alone
         if with_smooth:
@@ -216,7 +227,7 @@ def _factorize(T, ridge, smooth, absolute, with_smooth, method, chunk, qr_chunk,
     # no runtime error inside: `build` raises from `finite` (a program with a host callback is keyed on
     # the callback's address, so the persistent cache never serves it to a later process), or, under
     # a caller's trace, `_checked` there
-    return LinearCues(T, inverse, jnp.asarray(ls), jnp.asarray(lr)), jnp.all(jnp.isfinite(inverse))
+    return LinearCues(T, inverse, jnp.asarray(ls), jnp.asarray(lr), columns), jnp.all(jnp.isfinite(inverse))
 
 
 def _checked(cues, finite):
@@ -242,7 +253,7 @@ def _influence(cues, y, chunk):
     return cues._influence(y, chunk)
 
 
-def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int):
+def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int, columns=None):
     """`L^-1` with `L L^T = B = A^T A + ls D^T D + lr I` (eq. 5.13; `ls=None`: no smoothing), accurately in float32.
 
     Shifted CholeskyQR (Fukaya et al., 2020): `L` starts as the Cholesky factor of the formed `B`
@@ -250,16 +261,20 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int):
     A pass factors `C = L^-1 B L^-T = Q^T Q + L^-1 R L^-T` with `Q = A L^-T` (accumulated over row
     blocks, never stored) and sets `L <- L chol(C)`. `C` is well conditioned, `cond(C) <= 1 + s / lr`,
     so a pass leaves a relative error of about `eps (1 + s / lr)`; a second pass (see `_passes`)
-    starts from `cond(C) ~ 1`.
+    starts from `cond(C) ~ 1`. `columns` (`kept_columns`, with `ls=None` only): all of it on those
+    columns of `A`, the others' `I / sqrt(lr)` set in the end.
     """
-    eye = jnp.eye(A.shape[1], dtype=A.dtype)
+    N = A.shape[1]
+    A = _kept(A, columns)
+    n = A.shape[1]
     gram = gram_matrix(A, chunk=chunk)
     eps = jnp.finfo(A.dtype).eps
-    shift = jnp.sqrt(eps) * jnp.mean(jnp.diag(gram))
-    factor = cholesky(gram + prior_matrix(grid, 0.0 if ls is None else ls, lr + shift, A.dtype))
+    shift = jnp.sqrt(eps) * jnp.trace(gram) / N  # the mean of diag(A^T A) over every column
+    factor = cholesky(gram + prior_matrix(grid, 0.0 if ls is None else ls, lr + shift, A.dtype) if columns is None
+                      else gram + (lr + shift) * jnp.eye(n, dtype=A.dtype))
     del gram
 
-    edges = _factor_edges(A.shape[1])
+    edges = _factor_edges(n)
 
     def refine(Linv):
         nonzero = _factor_blocks(Linv, edges)
@@ -276,10 +291,56 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int):
         C = symmetric_from_blocks(fold_rows(A, add_block, upper_blocks(prior, edges), chunk), edges)
         return jax.scipy.linalg.solve_triangular(cholesky(C), Linv, lower=True)
 
-    Linv = jax.scipy.linalg.solve_triangular(factor, eye, lower=True)
+    Linv = jax.scipy.linalg.solve_triangular(factor, jnp.eye(n, dtype=A.dtype), lower=True)
     for _ in range(passes):  # not lax.cond: a traced choice made XLA copy A (2x A more memory)
         Linv = refine(Linv)
-    return Linv
+    if columns is None:
+        return Linv
+    # the columns left out decouple: their block of B is `lr I`, of L^-1 `I / sqrt(lr)`
+    full = jnp.diag(jnp.full(N, 1.0, A.dtype) / jnp.sqrt(lr))
+    return full.at[columns[:, None], columns[None, :]].set(Linv)
+
+
+def _kept(A, columns):
+    """`A[:, columns]`, a copy (`columns=None`: `A` itself).
+
+    Gathered once: gathered block by block inside the loops over rows, the products read them 1.5-2x
+    slower (teapot, 2 cores); the copy costs a few percent of a product and `m / N` of `A`'s memory.
+    """
+    if columns is None:
+        return A
+    return jnp.take(A, columns, axis=1, unique_indices=True, indices_are_sorted=True, mode="clip")
+
+
+def kept_columns(A, multiple: int = 256):
+    """The columns of `A` that the ridge-only factorization keeps, sorted (`int32`), or None for all of them.
+
+    With the ridge alone (`R = lr I`), a column of `A` that is zero (a direction no pixel sees: the
+    sky under the floor) decouples from the others: `B` is `lr` on its diagonal and zero off it, and
+    so are the Cholesky factor and `L^-1`, exactly. The factorization and the cue maps' products then
+    run on the seen columns alone, `m` of `N`: `m^3` rather than `N^3` flops for the factors, and
+    `P m^2` rather than `P N^2` for the products (the object-camera's hidden lower hemisphere is half
+    the grid). `m` is rounded up to a `multiple` (with columns that no pixel sees, which decouple as
+    well), so that scenes of one grid share a few program shapes; None when that leaves out none.
+    Eager (the count sets a shape): one pass over `A` (a program of its own), and a transfer of `N` flags;
+    none for `N <= multiple`.
+    """
+    N = A.shape[1]
+    if N <= multiple:
+        return None
+    seen = np.asarray(_seen_columns(A))
+    m = min(N, max(multiple, -(-int(seen.sum()) // multiple) * multiple))
+    if m == N:
+        return None
+    unseen = np.flatnonzero(~seen)
+    keep = seen.copy()
+    keep[unseen[:m - int(seen.sum())]] = True
+    return jnp.asarray(np.flatnonzero(keep), jnp.int32)
+
+
+@filter_jit
+def _seen_columns(A):
+    return jnp.max(jnp.abs(A), axis=0) > 0
 
 
 def _factor_edges(n: int, parts: int = 4) -> list[int]:
