@@ -306,8 +306,8 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int, columns=None):
 def _kept(A, columns):
     """`A[:, columns]`, a copy (`columns=None`: `A` itself).
 
-    Gathered once: gathered block by block inside the loops over rows, the products read them 1.5-2x
-    slower (teapot, 2 cores); the copy costs a few percent of a product and `m / N` of `A`'s memory.
+    Gathered once: gathered block by block inside the loop over rows, `A^T A` of the demo's 1024 seen
+    columns took 0.21 s instead of 0.12 s (2 cores); the copy takes about 0.02 s and `m / N` of `A`'s memory.
     """
     if columns is None:
         return A
