@@ -104,6 +104,9 @@ def test_with_the_ridge_alone_the_cues_factor_only_the_seen_columns_and_match_th
             np.testing.assert_allclose(mine, theirs, rtol=1e-8, atol=1e-14)
         np.testing.assert_allclose(cues.uncertainty(), whole.uncertainty(), rtol=1e-10)
         assert kept_columns(T.A[:, :256]) is None  # 256 cells or fewer: nothing to leave out
+        with_nan = A.copy()
+        with_nan[7, np.flatnonzero(~seen)[0]] = np.nan  # a NaN column is kept: it reaches the factor's check
+        assert np.flatnonzero(~seen)[0] in np.asarray(kept_columns(jnp.asarray(with_nan)))
         mostly_seen = np.zeros((P, 500))
         mostly_seen[:, :300] = A[:, seen][:, :1].repeat(300, axis=1)
         assert kept_columns(jnp.asarray(mostly_seen)) is None  # 300 seen, rounded up to 512: all of 500

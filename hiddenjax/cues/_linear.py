@@ -342,7 +342,8 @@ def kept_columns(A, multiple: int = 256):
 
 @filter_jit
 def _seen_columns(A):
-    return jnp.max(jnp.abs(A), axis=0) > 0
+    """Columns with a nonzero entry, or a NaN (kept, so that it reaches the factor's finiteness check)."""
+    return jnp.max(jnp.abs(A), axis=0) != 0
 
 
 def _factor_edges(n: int, parts: int = 4) -> list[int]:
