@@ -105,8 +105,11 @@ def test_with_the_ridge_alone_the_cues_factor_only_the_seen_columns_and_match_th
         np.testing.assert_allclose(cues.uncertainty(), whole.uncertainty(), rtol=1e-10)
         assert kept_columns(T.A[:, :256]) is None  # 256 cells or fewer: nothing to leave out
         with_nan = A.copy()
-        with_nan[7, np.flatnonzero(~seen)[0]] = np.nan  # a NaN column is kept: it reaches the factor's check
-        assert np.flatnonzero(~seen)[0] in np.asarray(kept_columns(jnp.asarray(with_nan)))
+        with_nan[7, np.flatnonzero(~seen)[-1]] = np.nan  # kept (not as padding): the factor's check meets it
+        assert np.flatnonzero(~seen)[-1] in np.asarray(kept_columns(jnp.asarray(with_nan)))
+        dark_block = np.zeros((P, 1024))  # and A^T A does not skip a column block whose one entry is NaN
+        dark_block[:, :150], dark_block[7, 800] = A[:, seen][:, :150], np.nan
+        assert np.isnan(np.asarray(hj.solvers.gram_matrix(jnp.asarray(dark_block)))[800, 800])
         mostly_seen = np.zeros((P, 500))
         mostly_seen[:, :300] = A[:, seen][:, :1].repeat(300, axis=1)
         assert kept_columns(jnp.asarray(mostly_seen)) is None  # 300 seen, rounded up to 512: all of 500

@@ -342,8 +342,9 @@ def kept_columns(A, multiple: int = 256):
 
 @filter_jit
 def _seen_columns(A):
-    """Columns with a nonzero entry, or a NaN (kept, so that it reaches the factor's finiteness check)."""
-    return jnp.max(jnp.abs(A), axis=0) != 0
+    """Columns with an entry that is not zero, NaN included (kept, so that the factor's finiteness check meets it:
+    a max of `|A|` on the CPU drops NaN)."""
+    return jnp.any(A != 0, axis=0)
 
 
 def _factor_edges(n: int, parts: int = 4) -> list[int]:

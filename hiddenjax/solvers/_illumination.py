@@ -385,7 +385,7 @@ def gram_matrix(A: Float[Array, "P N"], block: int = 512, chunk: int = 2048) -> 
     one `chunk x N` block.
     """
     edges = list(range(0, A.shape[1], block)) + [A.shape[1]]
-    nonzero = jnp.max(jnp.abs(A), axis=0) > 0  # one pass over A (A's column slices, or A != 0, were copies)
+    nonzero = jnp.any(A != 0, axis=0)  # one pass over A (its column slices were copies); NaN counts as nonzero
     lit = [jnp.any(nonzero[a:b]) for a, b in zip(edges[:-1], edges[1:])]
     G = fold_rows(A, lambda G, start, rows: add_gram_blocks(G, rows, edges, lit), gram_blocks(edges, A.dtype), chunk)
     return symmetric_from_blocks(G, edges)
