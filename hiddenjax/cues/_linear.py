@@ -104,7 +104,8 @@ class LinearCues(eqx.Module):
         return cues
 
     def _kept_factor(self):
-        """`L^-1` on the kept columns, `(m, m)`, and its products' column blocks and nonzero blocks (see `_factor_blocks`)."""
+        """`L^-1` on the kept columns, `(m, m)`, and its products' column blocks and nonzero blocks
+        (see `_factor_blocks`)."""
         Linv = self.inverse_factor if self.columns is None else self.inverse_factor[self.columns][:, self.columns]
         edges = _factor_edges(Linv.shape[0])
         return Linv, edges, _factor_blocks(Linv, edges)
