@@ -172,14 +172,16 @@ def stored_call(fun, options: dict, fallback):
             return fallback(*args, **kwargs)
         leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
         described = _described(leaves)
+        if described is None:
+            return fallback(*args, **kwargs)
         signature = (treedef, described, _trace_context())
         try:
-            known = described is None or signature in programs
+            known = signature in programs
         except TypeError:  # an unhashable static leaf: traced, as eqx.filter_jit takes it
             return fallback(*args, **kwargs)
         if not known:
             programs[signature] = _load_or_export(fun, options, signature, leaves)
-        program = None if described is None else programs[signature]
+        program = programs[signature]
         if program is None:
             return fallback(*args, **kwargs)
         return program([leaf for leaf in leaves if eqx.is_array(leaf)])

@@ -24,7 +24,7 @@ from jaxtyping import Array, Float, Int
 
 from ..solvers import DEFAULT_RIDGE, DEFAULT_SMOOTH, gram_matrix, prior_matrix, regularization_weights
 from ..solvers._illumination import (_check_image, _check_weights, _traced_weights, add_gram_blocks, fold_rows,
-                                     symmetric_from_blocks, transpose_times, upper_blocks)
+                                     seen_columns, symmetric_from_blocks, transpose_times, upper_blocks)
 from ..transport import TransportMatrix, TransportOperator
 from .._jit import filter_jit
 from .._qp import cholesky
@@ -273,8 +273,8 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int, columns=None):
     gram = gram_matrix(A, chunk=chunk)
     eps = jnp.finfo(A.dtype).eps
     shift = jnp.sqrt(eps) * jnp.trace(gram) / N  # the mean of diag(A^T A) over every column
-    factor = cholesky(gram + prior_matrix(grid, 0.0 if ls is None else ls, lr + shift, A.dtype) if columns is None
-                      else gram + (lr + shift) * jnp.eye(n, dtype=A.dtype))
+    factor = cholesky(gram + (lr + shift) * jnp.eye(n, dtype=A.dtype) if ls is None
+                      else gram + prior_matrix(grid, ls, lr + shift, A.dtype))
     del gram
 
     edges = _factor_edges(n)
@@ -300,8 +300,7 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int, columns=None):
     if columns is None:
         return Linv
     # the columns left out decouple: their block of B is `lr I`, of L^-1 `I / sqrt(lr)`
-    full = jnp.diag(jnp.full(N, 1.0, A.dtype) / jnp.sqrt(lr))
-    return full.at[columns[:, None], columns[None, :]].set(Linv)
+    return (jnp.eye(N, dtype=A.dtype) / jnp.sqrt(lr)).at[columns[:, None], columns[None, :]].set(Linv)
 
 
 def _kept(A, columns):
@@ -332,20 +331,18 @@ def kept_columns(A, multiple: int = 256):
     if N <= multiple:
         return None
     seen = np.asarray(_seen_columns(A))
-    m = min(N, max(multiple, -(-int(seen.sum()) // multiple) * multiple))
+    count = int(seen.sum())
+    m = min(N, max(multiple, -(-count // multiple) * multiple))
     if m == N:
         return None
-    unseen = np.flatnonzero(~seen)
     keep = seen.copy()
-    keep[unseen[:m - int(seen.sum())]] = True
+    keep[np.flatnonzero(~seen)[:m - count]] = True  # the padding: the first unseen columns
     return jax.device_put(np.flatnonzero(keep).astype(np.int32))  # a transfer (jnp.asarray would be a program)
 
 
 @filter_jit
 def _seen_columns(A):
-    """Columns with an entry that is not zero, NaN included (kept, so that the factor's finiteness check meets it:
-    a max of `|A|` on the CPU drops NaN)."""
-    return jnp.any(A != 0, axis=0)
+    return seen_columns(A)  # a NaN column is kept, so that the factor's finiteness check meets it
 
 
 def _factor_edges(n: int, parts: int = 4) -> list[int]:

@@ -13,7 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from .._qp import (NOT_POSITIVE_DEFINITE, SUCCESS, DampedNewton, ProjectedNewton, _cho_solve, _cholesky,
                    _kkt_residual, _solve, check, checks_on_host)
@@ -385,10 +385,19 @@ def gram_matrix(A: Float[Array, "P N"], block: int = 512, chunk: int = 2048) -> 
     one `chunk x N` block.
     """
     edges = list(range(0, A.shape[1], block)) + [A.shape[1]]
-    nonzero = jnp.any(A != 0, axis=0)  # one pass over A (its column slices were copies); NaN counts as nonzero
+    nonzero = seen_columns(A)  # one pass over A (its column slices were copies)
     lit = [jnp.any(nonzero[a:b]) for a, b in zip(edges[:-1], edges[1:])]
     G = fold_rows(A, lambda G, start, rows: add_gram_blocks(G, rows, edges, lit), gram_blocks(edges, A.dtype), chunk)
     return symmetric_from_blocks(G, edges)
+
+
+def seen_columns(A: Float[Array, "P N"]) -> Bool[Array, " N"]:
+    """Whether each column of `A` holds an entry other than zero (a direction some pixel sees), NaN included.
+
+    Not `max |A| > 0`: XLA's reductions along an axis on the CPU drop NaN (jaxlib 0.10), so a column
+    whose one nonzero entry is NaN would pass for all-zero and be skipped, its NaN never reaching a check.
+    """
+    return jnp.any(A != 0, axis=0)
 
 
 def _pairs(edges):
