@@ -10,10 +10,14 @@ configuration, the user's to choose); the `hiddenjax` command, the examples and 
 The cache holds executables that JAX runs without checking them, so it must be a folder only its
 owner can write: the default is private (mode 0700) under the platform's cache folder, one per jax
 version; a folder that others can write, or that cannot be written, is a warning and a run without
-the cache. With the `filelock` package (a dependency) JAX's reads and writes take a lock, so
-processes filling one cache at once (test workers, a benchmark's children) do not read each
-other's half-written entries. On GPUs XLA's per-fusion autotuning results are kept beside it
-(JAX's `jax_persistent_cache_enable_xla_caches` default).
+the cache. Processes may fill one cache at once (test workers, a benchmark's children): JAX writes
+an entry in place, and one read half-written by another process fails to decompress (the
+compressed stream carries its end), which JAX reports as a warning and compiles the program
+instead; it never loads a truncated program. No maximum size is given to JAX, whose eviction
+lists every entry on each write (3000 programs written into one cache took 79 s so, against 0.1 s
+without); instead `trim` removes the least recently used programs beyond `MAX_BYTES`, at most once
+a day, when a process turns the cache on. On GPUs XLA's per-fusion autotuning results are kept
+beside it (JAX's `jax_persistent_cache_enable_xla_caches` default).
 
 `HIDDENJAX_CACHE` moves the cache (a folder) or turns it off (`off`, `0`, `false`, `no`); a cache
 chosen through JAX itself (`JAX_COMPILATION_CACHE_DIR` or `jax.config`) is left as it is. Beside the
@@ -25,6 +29,7 @@ import os
 import stat
 import sys
 import tempfile
+import time
 import warnings
 from pathlib import Path
 
@@ -35,7 +40,9 @@ from . import _program_store
 ENVIRONMENT = "HIDDENJAX_CACHE"
 OFF = ("off", "0", "false", "no", "none")
 PROGRAMS = "hiddenjax-programs"  # the traced programs' folder inside the cache (`_program_store`)
-MAX_BYTES = 4 << 30  # JAX evicts the least recently used programs past this (and then reads and writes take a lock)
+MAX_BYTES = 4 << 30  # `trim` removes the least recently used programs past this
+TRIM_EVERY_S = 24 * 3600  # `trim` lists the folder at most this often (a marker file holds the time)
+TRIM_MARKER = ".trimmed"
 
 
 def default_cache_dir() -> Path:
@@ -92,8 +99,7 @@ def enable_compilation_cache(path=None) -> Path | None:
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
-    if _has_filelock():
-        jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    trim(folder)
     _program_store.enable(folder / PROGRAMS)
     return folder
 
@@ -119,9 +125,39 @@ def _unusable(folder: Path) -> str | None:
     return None
 
 
-def _has_filelock() -> bool:
+def trim(folder: Path, max_bytes: int = MAX_BYTES, every_s: float = TRIM_EVERY_S) -> int:
+    """Remove JAX's least recently used programs from `folder` until they hold at most `max_bytes`; the bytes removed.
+
+    An entry is JAX's `KEY-cache` file (with its `KEY-atime`, which JAX writes only under its own
+    eviction); its last use is the later of the file's access and modification times. The folder is
+    listed at most once per `every_s` seconds (the time of the last listing is the marker file's), so
+    a process that turns the cache on pays one `stat` rather than a listing of thousands of entries.
+    A file that cannot be removed (another process removed it first) is left.
+    """
+    marker = folder / TRIM_MARKER
     try:
-        import filelock  # noqa: F401  (JAX's cache takes its lock when a maximum size is set)
-    except ImportError:
-        return False
-    return True
+        if time.time() - marker.stat().st_mtime < every_s:
+            return 0
+    except OSError:
+        pass
+    try:
+        marker.touch()
+        entries = []
+        with os.scandir(folder) as listing:
+            for entry in listing:
+                if entry.name.endswith("-cache") and entry.is_file(follow_symlinks=False):
+                    info = entry.stat(follow_symlinks=False)
+                    entries.append((max(info.st_atime, info.st_mtime), info.st_size, entry.name[:-len("-cache")]))
+    except OSError:
+        return 0
+    total, removed = sum(size for _, size, _ in entries), 0
+    for _, size, key in sorted(entries):
+        if total <= max_bytes:
+            break
+        for suffix in ("-cache", "-atime"):
+            try:
+                (folder / f"{key}{suffix}").unlink()
+            except OSError:
+                continue
+        total, removed = total - size, removed + size
+    return removed

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import hiddenjax as hj
-from hiddenjax._compilation_cache import _unusable
+from hiddenjax._compilation_cache import PROGRAMS, _unusable, trim
 
 # A small program under the cache; prints what JAX's monitoring saw (hits, compilations) and the result.
 PROBE = """
@@ -76,6 +76,36 @@ def test_concurrent_processes_fill_one_cache(tmp_path):
     again, stderr = probe(cache)
     assert again["hits"] >= 1 and again["value"] in values
     assert "Error reading persistent compilation cache" not in stderr
+
+
+def test_a_half_written_entry_is_a_warning_and_a_compile_never_a_loaded_program(tmp_path):
+    """What a process reads while another writes the entry (JAX writes in place, no lock): every entry cut to half."""
+    cache = tmp_path / "cache"
+    first, _ = probe(cache)
+    entries = [p for p in cache.iterdir() if p.name.endswith("-cache")]
+    assert entries
+    for p in entries:
+        p.write_bytes(p.read_bytes()[:p.stat().st_size // 2])
+    again, stderr = probe(cache)
+    assert again["hits"] == 0 and again["value"] == first["value"]
+    assert "Error reading persistent compilation cache" in stderr
+
+
+def test_trim_removes_the_least_recently_used_programs_beyond_the_maximum(tmp_path):
+    folder = tmp_path / "cache"
+    folder.mkdir()
+    for k in range(6):  # JAX's entries, 1000 bytes each, used at times 1000 + k (k = 5 the latest)
+        for suffix in ("-cache", "-atime"):
+            (folder / f"key{k}{suffix}").write_bytes(b"x" * (1000 if suffix == "-cache" else 8))
+            os.utime(folder / f"key{k}{suffix}", (1000 + k, 1000 + k))
+    (folder / PROGRAMS).mkdir()  # hiddenjax's own store, trimmed by itself
+    assert trim(folder, max_bytes=3500) == 3000
+    assert sorted(p.name for p in folder.iterdir() if p.name.endswith("-cache")) == ["key3-cache", "key4-cache",
+                                                                                     "key5-cache"]
+    assert not (folder / "key0-atime").exists() and (folder / "key3-atime").exists() and (folder / PROGRAMS).is_dir()
+    assert trim(folder, max_bytes=0) == 0  # listed at most once per `every_s`: the marker is fresh
+    assert trim(folder, max_bytes=0, every_s=0) == 3000
+    assert trim(tmp_path / "missing", every_s=0) == 0
 
 
 def test_unusable_folders_warn_and_run_without(tmp_path):
