@@ -340,7 +340,9 @@ def _capacities(n, backend=None):
     `lax.switch`, compiled once (about 0.2 s each on 2 cores): 12 sizes for `n = 2048`. On the
     teapot (8 photos, 32x64 grid, free sets of 400-750 entries) `solve_many` compiled in 5.2 s and
     ran in the same 0.23 s as with multiples of 64 (20 sizes, 8.8 s to compile); multiples of 256
-    compiled in 3.8 s and ran 9% slower, multiples of 32 in 17 s for 4% more images/s.
+    compiled in 3.8 s and ran 9% slower, multiples of 32 in 17 s for 4% more images/s. With the fixed
+    entries' branches, multiples of 256 (10 branches) still cost a `solve_many` of noisy frames 5-14%
+    on every call for 0.6 s less compiling once per machine (docs: benchmarks, "Fewer sizes").
     On an accelerator (`backend`, default `jax.default_backend()`, is not "cpu") a factorization
     costs little more for 2048 entries than for 256 (a kernel's launch, not its flops, dominates
     below a few thousand), while every branch costs its compile: powers of two from 1024, then `n`
