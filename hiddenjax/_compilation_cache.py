@@ -132,7 +132,6 @@ def trim(folder: Path, max_bytes: int = MAX_BYTES, every_s: float = TRIM_EVERY_S
     eviction); its last use is the later of the file's access and modification times. The folder is
     listed at most once per `every_s` seconds (the time of the last listing is the marker file's), so
     a process that turns the cache on pays one `stat` rather than a listing of thousands of entries.
-    A file that cannot be removed (another process removed it first) is left.
     """
     marker = folder / TRIM_MARKER
     try:
@@ -146,18 +145,9 @@ def trim(folder: Path, max_bytes: int = MAX_BYTES, every_s: float = TRIM_EVERY_S
         with os.scandir(folder) as listing:
             for entry in listing:
                 if entry.name.endswith("-cache") and entry.is_file(follow_symlinks=False):
-                    info = entry.stat(follow_symlinks=False)
-                    entries.append((max(info.st_atime, info.st_mtime), info.st_size, entry.name[:-len("-cache")]))
+                    info, key = entry.stat(follow_symlinks=False), entry.name[:-len("-cache")]
+                    files = [folder / f"{key}-cache", folder / f"{key}-atime"]
+                    entries.append((max(info.st_atime, info.st_mtime), info.st_size, files))
     except OSError:
         return 0
-    total, removed = sum(size for _, size, _ in entries), 0
-    for _, size, key in sorted(entries):
-        if total <= max_bytes:
-            break
-        for suffix in ("-cache", "-atime"):
-            try:
-                (folder / f"{key}{suffix}").unlink()
-            except OSError:
-                continue
-        total, removed = total - size, removed + size
-    return removed
+    return _program_store.remove_oldest(entries, max_bytes)

@@ -265,18 +265,31 @@ def _export(fun, leaves, treedef):
     return made
 
 
+def remove_oldest(entries, max_bytes: int) -> int:
+    """Remove the oldest of `entries`, each `(last use, bytes, its files)`, until the rest hold at most `max_bytes`.
+
+    Returns the bytes removed. A file that cannot be removed (another process removed it first) is left.
+    """
+    total, removed = sum(size for _, size, _ in entries), 0
+    for _, size, files in sorted(entries, key=lambda e: e[0]):
+        if total <= max_bytes:
+            break
+        for file in files:
+            try:
+                file.unlink()
+            except OSError:
+                continue
+        total, removed = total - size, removed + size
+    return removed
+
+
 def _write(path: Path, data: bytes) -> None:
     """Write an entry whole (a temporary file renamed), then trim the store to `MAX_BYTES`; a failure is a warning."""
     try:
         with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".tmp-", delete=False) as f:
             f.write(data)
         os.replace(f.name, path)
-        entries = sorted((p.stat().st_mtime, p.stat().st_size, p) for p in path.parent.iterdir() if p.is_file())
-        total = sum(size for _, size, _ in entries)
-        for _, size, old in entries:
-            if total <= MAX_BYTES:
-                break
-            old.unlink(missing_ok=True)
-            total -= size
+        remove_oldest([(info.st_mtime, info.st_size, [p]) for p in path.parent.iterdir()
+                       if p.is_file() and (info := p.stat())], MAX_BYTES)
     except OSError as e:
         warnings.warn(f"a traced program was not stored in {path.parent}: {e}", RuntimeWarning, stacklevel=3)

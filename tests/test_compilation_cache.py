@@ -43,7 +43,7 @@ def probe(env_cache, extra_env=None):
     return json.loads(done.stdout.strip().splitlines()[-1]), done.stderr
 
 
-def test_import_leaves_jax_alone_and_a_second_process_loads_the_program(tmp_path):
+def test_import_leaves_jax_alone_and_a_second_process_loads_the_program_but_never_a_half_written_one(tmp_path):
     cache = tmp_path / "cache"
     first, _ = probe(cache)
     assert first["before"] is None  # importing hiddenjax set no cache
@@ -53,6 +53,13 @@ def test_import_leaves_jax_alone_and_a_second_process_loads_the_program(tmp_path
     second, _ = probe(cache)
     assert second["hits"] >= 1 and second["misses"] == 0
     assert second["value"] == first["value"]
+    # What a process reads while another writes the entry (JAX writes in place, no lock): every entry cut to half.
+    for p in cache.iterdir():
+        if p.name.endswith("-cache"):
+            p.write_bytes(p.read_bytes()[:p.stat().st_size // 2])
+    third, stderr = probe(cache)
+    assert third["hits"] == 0 and third["value"] == first["value"]
+    assert "Error reading persistent compilation cache" in stderr
 
 
 def test_off_and_default_folder(tmp_path):
@@ -78,19 +85,6 @@ def test_concurrent_processes_fill_one_cache(tmp_path):
     assert "Error reading persistent compilation cache" not in stderr
 
 
-def test_a_half_written_entry_is_a_warning_and_a_compile_never_a_loaded_program(tmp_path):
-    """What a process reads while another writes the entry (JAX writes in place, no lock): every entry cut to half."""
-    cache = tmp_path / "cache"
-    first, _ = probe(cache)
-    entries = [p for p in cache.iterdir() if p.name.endswith("-cache")]
-    assert entries
-    for p in entries:
-        p.write_bytes(p.read_bytes()[:p.stat().st_size // 2])
-    again, stderr = probe(cache)
-    assert again["hits"] == 0 and again["value"] == first["value"]
-    assert "Error reading persistent compilation cache" in stderr
-
-
 def test_trim_removes_the_least_recently_used_programs_beyond_the_maximum(tmp_path):
     folder = tmp_path / "cache"
     folder.mkdir()
@@ -106,6 +100,18 @@ def test_trim_removes_the_least_recently_used_programs_beyond_the_maximum(tmp_pa
     assert trim(folder, max_bytes=0) == 0  # listed at most once per `every_s`: the marker is fresh
     assert trim(folder, max_bytes=0, every_s=0) == 3000
     assert trim(tmp_path / "missing", every_s=0) == 0
+
+
+def test_the_program_store_keeps_its_latest_entries_within_its_maximum(tmp_path, monkeypatch):
+    from hiddenjax import _program_store
+
+    monkeypatch.setattr(_program_store, "MAX_BYTES", 2500)
+    for k in range(2):  # written at times 1000 and 1001, 2000 bytes in all
+        _program_store._write(tmp_path / f"program{k}", b"x" * 1000)
+        os.utime(tmp_path / f"program{k}", (1000 + k, 1000 + k))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["program0", "program1"]
+    _program_store._write(tmp_path / "program2", b"x" * 1000)  # 3000 bytes: the oldest goes
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["program1", "program2"]
 
 
 def test_unusable_folders_warn_and_run_without(tmp_path):
