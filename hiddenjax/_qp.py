@@ -187,8 +187,9 @@ def _lapack_order(k: int, backend=None) -> int:
 
     LAPACK's blocked Cholesky on leading dimensions that are multiples of 256 runs into cache-set
     conflicts: on 2 cores (float32) 2048 took 57 ms and 2056 took 20 ms; 1024, 3.4 ms at 1032 instead
-    of 9.3; 1536, 10 ms at 1544 instead of 16. Identity rows bordering the matrix leave its factor
-    as it is.
+    of 9.3; 1536, 10 ms at 1544 instead of 16 (on a machine of the same kind running slower, 2048 took
+    70-78 ms and 2056 46-69 ms, medians of nine). Identity rows bordering the matrix leave its
+    factor as it is.
     """
     cpu = (backend or jax.default_backend()) == "cpu"
     return k + 8 if cpu and k >= 256 and k % 256 == 0 else k
