@@ -539,6 +539,9 @@ def reconstruct(args) -> dict:
     mask = None
     if args.object_mask is not None:
         mask = io.read_image(args.object_mask) > 0.5
+    if args.plate_times and not args.plate:
+        raise ValueError("--plate-times are the exposure times of a clean plate's bracket; give the plate (--plate)")
+    plate = _read_capture(args.plate, args.plate_times, args.srgb, args.response) if args.plate else None
     grid = EnvGrid(*args.grid)
     t0 = time.perf_counter()
     rec = _photo.reconstruct(
@@ -547,6 +550,7 @@ def reconstruct(args) -> dict:
         object_mask=mask, refine=not args.no_refine,
         width=args.width, grid=grid, samples=args.samples, pixel_samples=args.pixel_samples, prior=args.prior,
         albedo=args.albedo, seed=args.seed, progress=not args.quiet,
+        plate=None if plate is None else plate.radiance, plate_saturated=None if plate is None else plate.saturated,
     )
     seconds = time.perf_counter() - t0
     sheet = _capture_sheet(b, photo.radiance, intr, rec)
@@ -568,7 +572,9 @@ def reconstruct(args) -> dict:
                   reprojection_error_px=rec.pose.reprojection_error, corners=rec.pose.corners),
         placement=dict(x=p.x, z=p.z, yaw_deg=p.yaw),
         refinement=None if r is None else dict(iou=r.iou, initial_iou=r.initial_iou),
-        observed_pixels=int(rec.mask.sum()), seconds=seconds, cues=cue_summary,
+        observed_pixels=int(rec.mask.sum()), seconds=seconds, cues=cue_summary, residual=rec.residual,
+        plate=None if rec.plate is None else dict(shift_px=rec.plate.shift_px, corners=rec.plate.pose.corners,
+                                                   albedo_pixels=int(rec.plate.valid.sum())),
     )
     io.write_text(out / "results.json", json.dumps(results, indent=2))
     moved = "" if r is None else (f"; object refined to x {p.x:.4f} m, z {p.z:.4f} m, yaw {p.yaw:.1f} deg "
@@ -771,11 +777,16 @@ def _capture_sheet(b, radiance, intr, rec) -> list:
         drawn = intr.undistort(drawn)
     cv2.drawContours(drawn, contours, -1, (255, 0, 255), max(1, drawn.shape[1] // 640), cv2.LINE_AA)
     observed = np.where(rec.mask[..., None] if rec.photo.ndim == 3 else rec.mask, rec.photo, np.nan)
-    return [
+    panels = [
         ("board (green corners, yellow outline)\nobject outline (magenta)", (drawn / 255.0) ** 2.2, "radiance", 1.0),
         ("observed table pixels\n(grey: not used)", observed),
         ("environment map", rec.env),
     ]
+    if rec.plate is not None:  # what the plate divided out: the table's texture, relative to its median
+        a = rec.plate.albedo.mean(axis=-1) if rec.plate.albedo.ndim == 3 else rec.plate.albedo
+        panels.insert(1, (f"table albedo from the plate\n(relative; moved {rec.plate.shift_px:.1f} px)",
+                          np.where(rec.plate.valid, a, np.nan), "radiance", 2.0))
+    return panels
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -955,6 +966,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--times", type=float, nargs="+", help="exposure times (s) of a bracket (default: EXIF)")
     p.add_argument("--response", choices=_photo.RESPONSES, help="a bracket's camera response (default: srgb for "
                    "8-bit photos, linear otherwise; debevec recovers it from the bracket)")
+    p.add_argument("--plate", nargs="+", metavar="PHOTO",
+                   help="a clean plate: the same view without the object, the board in place (one photo or a "
+                        "bracket); cancels a textured table's albedo")
+    p.add_argument("--plate-times", type=float, nargs="+", help="exposure times (s) of the plate's bracket (default: EXIF)")
     p.add_argument("--object-mask", help="the object's pixels (white) in the photo, when it is not darker than the table")
     p.add_argument("--no-refine", action="store_true", help="keep the stated place (no outline matching)")
     p.add_argument("--width", type=int, default=128, help="pixels across for the solve (default 128)")

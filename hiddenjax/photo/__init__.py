@@ -32,10 +32,14 @@ from ._capture import plain_table as plain_table
 from ._capture import refine_placement as refine_placement
 from ._capture import silhouette as silhouette
 from ._capture import table_mask as table_mask
+from ._plate import Plate as Plate
+from ._plate import clean_plate as clean_plate
+from ._reconstruct import TEXTURE_RESIDUAL as TEXTURE_RESIDUAL
 from ._reconstruct import Reconstruction as Reconstruction
 from ._reconstruct import reconstruct as reconstruct
 from ._reconstruct import scene_toml as scene_toml
 from ._synthetic import board_mesh as board_mesh
+from ._synthetic import capture_test_scene as capture_test_scene
 from ._synthetic import distort as distort
 from ._synthetic import render_capture as render_capture
 from ._video import BACKGROUNDS as BACKGROUNDS

@@ -7,12 +7,17 @@
 3. The photo is area-averaged down to `width` pixels across (a pixel is the mean radiance over its
    footprint, so the camera is the same pinhole at that size).
 4. Observed pixels: the table outside the board (uniform albedo), not the object, not saturated.
+   With a clean plate (`_plate`), each table pixel of the full-size photo is first divided by its
+   albedo relative to the table's median, which makes a textured table a uniform one.
 5. `A` of the inferred scene (Embree, eq. 5.1-5.2) and the map under the chosen prior.
+6. The fit's relative residual `||y - A x|| / ||y||` on the observed pixels: a table whose albedo
+   varies leaves texture the map cannot explain, and without a plate that is warned about.
 
 The map is the light's radiance times the table's albedo divided by `albedo` (default 1: give the
 table's albedo for absolute radiance).
 """
 
+import warnings
 from typing import NamedTuple
 
 import cv2
@@ -25,9 +30,13 @@ from ._board import Board
 from ._calibration import BoardPose, Intrinsics, board_pose
 from ._capture import (Placement, Refinement, capture_scene, dark_object_mask, object_mesh, place, plain_table,
                        refine_placement, silhouette, table_mask)
+from ._plate import Plate, check_plate_without_object, clean_plate
 
 REFINE_WIDTH = 800  # refine the placement on the photo resized to at most this many pixels across
 TABLE_SIZE = 4.0  # metres: the table plane of the inferred scene
+# The relative residual above which a table without a plate is taken to be textured: the rendered
+# captures of benchmarks/bench_tables.py leave 0.03-0.06 on a plain table, 0.15-0.2 on wood grain.
+TEXTURE_RESIDUAL = 0.06
 
 
 class Reconstruction(NamedTuple):
@@ -46,6 +55,8 @@ class Reconstruction(NamedTuple):
     solution: object
     object_mask: np.ndarray  # the object's pixels the refinement matched (refinement size)
     refine_camera: Camera
+    plate: Plate | None = None  # the clean plate in the photo's view (full size)
+    residual: float = 0.0  # ||y - A x|| / ||y|| on the observed pixels
 
 
 def undistort_photo(radiance, saturated, intrinsics: Intrinsics):
@@ -86,12 +97,19 @@ def reconstruct(
     pixel_samples: int = 4,
     prior=None,
     albedo: float = 1.0,
+    plate=None,
+    plate_saturated=None,
     seed: int = 0,
     progress: bool = False,
 ) -> Reconstruction:
     """Solve one capture for its environment map (module docstring). `radiance` is the linear photo
     at the calibration's size (`read_photo`, `merge_exposures`), `saturated` its clipped pixels,
-    `object_mask` the object's pixels (default: found as the dark pixels near the stated place)."""
+    `object_mask` the object's pixels (default: found as the dark pixels near the stated place).
+
+    `plate` is a clean plate (the same view without the object, the board in place; linear radiance
+    at the calibration's size, `plate_saturated` its clipped pixels): a textured table's albedo
+    cancels (`_plate`). Without one, a fit that leaves more than `TEXTURE_RESIDUAL` of the photo
+    unexplained warns that the table looks textured."""
     radiance = np.asarray(radiance, dtype=np.float32)
     H0, W0 = radiance.shape[:2]
     if (W0, H0) != (intrinsics.width, intrinsics.height):
@@ -125,18 +143,53 @@ def reconstruct(
         refinement = refine_placement(base, refine_camera, placement, target, care, radiance=refine_photo)
         placement = refinement.placement
 
+    used_plate = None
+    if plate is not None:
+        full_camera = pose.camera(W0, H0)
+        table = table_mask(board, full_camera, margin=0.0)
+        used_plate = clean_plate(board, plate, radiance, intrinsics, pose, table, plate_saturated)
+        outline = silhouette(place(base, placement), full_camera) > 0.5
+        radius = max(3, int(0.25 * np.sqrt(max(outline.sum(), 1))))
+        grow = lambda m, r: cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
+                                                                                     (2 * r + 1, 2 * r + 1))) > 0
+        ring = grow(outline, 2 * radius) & ~grow(outline, radius) & table
+        check_plate_without_object(photo, used_plate, outline & ~grow(~outline, 2), ring)
+        a = used_plate.albedo
+        if photo.ndim == 3 and a.ndim == 2:
+            a = a[..., None]
+        elif photo.ndim == 2 and a.ndim == 3:
+            a = a.mean(axis=-1)
+        photo = photo / a
+
     height = int(round(width * H0 / W0))
     camera = pose.camera(width, height)
     small = _resize(photo, width, height)
     mask = table_mask(board, camera, saturated=_resize_any(saturated, width, height))
+    if used_plate is not None:
+        mask &= ~_resize_any(table & ~used_plate.valid, width, height)
     scene = capture_scene(base, placement, albedo=albedo, table_size=TABLE_SIZE)
     T = transport_matrix(scene, camera, grid, samples=samples, pixel_samples=pixel_samples, mask=mask, seed=seed,
                          progress=progress)
     if T.A.shape[0] < 16:
         raise ValueError(f"only {T.A.shape[0]} pixels see the plain table; frame more table around the object")
     solution = solve_illumination(T, small, prior=prior)
+    env = np.asarray(solution.env)
+    residual = fit_residual(T, small, env)
+    if used_plate is None and residual > TEXTURE_RESIDUAL:
+        warnings.warn(f"the map leaves {residual:.0%} of the table's pixels unexplained: a table whose albedo "
+                      f"varies (wood grain, a print) looks like this; photograph the same view without the object "
+                      f"and give it as a clean plate (--plate, plate=), or put a sheet of paper under the object",
+                      UserWarning, stacklevel=2)
     return Reconstruction(pose, base, placement, refinement, camera, small, np.asarray(T.mask), scene, T,
-                          np.asarray(solution.env), solution, target, refine_camera)
+                          env, solution, target, refine_camera, used_plate, residual)
+
+
+def fit_residual(T: TransportMatrix, image, env) -> float:
+    """`||y - A x|| / ||y||` over the observed pixels (every channel) of `image` and the map `env`."""
+    A = np.asarray(T.A, dtype=np.float64)
+    y = np.asarray(image, dtype=np.float64).reshape(-1, *np.shape(image)[2:])[np.asarray(T.pixels)]
+    x = np.asarray(env, dtype=np.float64).reshape(A.shape[1], *np.shape(env)[2:])
+    return float(np.linalg.norm(y - A @ x) / max(float(np.linalg.norm(y)), 1e-30))
 
 
 def scene_toml(rec: Reconstruction, grid: EnvGrid, samples: int, pixel_samples: int, seed: int, albedo: float,

@@ -81,17 +81,27 @@ def board_mesh(board: Board, lift: float = 1e-4):
     return mesh
 
 
+def capture_test_scene(board: Board, mesh, *, object_albedo: float = 0.08, table=0.8, black: float = 0.05,
+                       white: float = 0.85, table_size: float = 8.0) -> Scene:
+    """The scene of a rendered capture: a `table_size` table (albedo `table`: a constant or a grey
+    texture over the table's UV square, `hj.scenes.wood_texture`), the board (`white`/`black`) lying
+    at its centre, and `mesh` (world coordinates, standing on y = 0; None: the clean plate, no object)."""
+    surfaces = [Surface(ground_plane(table_size), table),
+                Surface(board_mesh(board), np.where(board.texture(4000.0) > 0.5, white, black))]
+    if mesh is not None:
+        obj = mesh.copy()
+        obj.apply_translation([0.0, 1e-4 * float(np.ptp(obj.vertices, axis=0).max()), 0.0])
+        surfaces.append(Surface(obj, object_albedo, observe=False))
+    return Scene(surfaces)
+
+
 def render_capture(board: Board, mesh, camera: Camera, panorama, *, object_albedo: float = 0.08,
-                   table: float = 0.8, black: float = 0.05, white: float = 0.85, table_size: float = 8.0,
+                   table=0.8, black: float = 0.05, white: float = 0.85, table_size: float = 8.0,
                    samples: int = 64, pixel_samples: int = 4, seed: int = 0) -> np.ndarray:
-    """A photo (linear radiance) of `mesh` (world coordinates, standing on y = 0) on a `table_size`
-    table of albedo `table` with the board (`white`/`black`) lying at its centre, lit by `panorama`
-    (direct light, `hj.reference_render`)."""
-    obj = mesh.copy()
-    obj.apply_translation([0.0, 1e-4 * float(np.ptp(obj.vertices, axis=0).max()), 0.0])
-    albedo = np.where(board.texture(4000.0) > 0.5, white, black)
-    scene = Scene([Surface(ground_plane(table_size), table), Surface(board_mesh(board), albedo),
-                   Surface(obj, object_albedo, observe=False)])
+    """A photo (linear radiance) of `capture_test_scene` (the object `mesh` on the table beside the
+    board; None: the clean plate) lit by `panorama` (direct light, `hj.reference_render`)."""
+    scene = capture_test_scene(board, mesh, object_albedo=object_albedo, table=table, black=black, white=white,
+                               table_size=table_size)
     return reference_render(scene, camera, panorama, samples=samples, pixel_samples=pixel_samples, seed=seed)
 
 

@@ -275,8 +275,9 @@ def log_domain_weights(grid, x, floor):
     """`W_e = 1 / (xbar_e + floor mean(x))^2`, scaled to mean 1, from a map `x (N[, C])` (L2Prior doc)."""
     lum = jnp.maximum(x.mean(axis=1) if x.ndim == 2 else x, 0.0)
     i, j = grid.difference_pairs()
-    w = 1.0 / (0.5 * (lum[i] + lum[j]) + floor * jnp.maximum(jnp.mean(lum), jnp.finfo(lum.dtype).tiny)) ** 2
-    return w / jnp.mean(w)
+    mean = jnp.mean(lum)
+    w = 1.0 / (0.5 * (lum[i] + lum[j]) + floor * jnp.maximum(mean, jnp.finfo(lum.dtype).tiny)) ** 2
+    return jnp.where(mean > 0, w / jnp.mean(w), jnp.ones_like(w))  # a zero map: no edge to weight, not inf / inf
 
 
 class IlluminationSolution(eqx.Module):
@@ -841,12 +842,17 @@ def _check_signs(ys, nonneg: bool):
     """Warn when a photo solved with `x >= 0` has substantial negative radiance (a difference of frames?).
 
     Sensor noise around a black level leaves small negatives; a subtracted pair of frames is half
-    negative. Above `NEGATIVE_MASS` of the absolute value the warning names the fix.
+    negative. Above `NEGATIVE_MASS` of the absolute value the warning names the fix; a photo that is
+    negative but for less than `NEGATIVE_MASS` has no light for `x >= 0` to explain and is refused.
     """
     if not nonneg or any(isinstance(y, jax.core.Tracer) for y in ys):
         return
     negative = sum(float(np.sum(np.maximum(-np.asarray(y), 0))) for y in ys)
     total = sum(float(np.sum(np.abs(np.asarray(y)))) for y in ys)
+    if negative >= (1 - NEGATIVE_MASS) * total:  # next to no light: the map of x >= 0 would be (nearly) zero
+        raise ValueError(f"the photo is negative ({100 * negative / total:.0f}% of its absolute value): solved with "
+                         "x >= 0 its map is zero; for a difference of frames solve the signed map (nonneg=False, or "
+                         "`hiddenjax solve --signed`); otherwise check the black level and the file")
     if negative > NEGATIVE_MASS * total:
         warnings.warn(f"the photo has negative radiance ({100 * negative / total:.0f}% of its absolute value) but is "
                       "solved with x >= 0: for a difference of frames solve the signed map (nonneg=False, or "
