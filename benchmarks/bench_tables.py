@@ -11,12 +11,16 @@ involved). Without Mitsuba the reference renderer (direct light) takes its place
 `results.json` says so. Tables (`--tables`):
 
 - `plain`: matte, uniform albedo 0.65;
-- `wood`: matte wood grain (`hj.scenes.wood_texture`, 2 cm stripes) scaled to albedo 0.45-0.85.
+- `wood`: matte wood grain (`hj.scenes.wood_texture`, 2 cm stripes) scaled to albedo 0.45-0.85;
+- `satin`: albedo 0.65 under a glossy layer (GGX roughness 0.25, index 1.5: Mitsuba's
+  `roughplastic`).
 
 Each capture is photographed twice: with the object and as a clean plate (the same view without
 it). Each is solved at 128 pixels across on a 32x64 grid (`--quick`: 320x240 photos, 64 pixels
 across, 16x32) with the object stated 8 mm and 10 degrees off its true place, as
-`examples/real_capture.py` does: with the defaults and with `plate=`. The figure is the map's tone-mapped SSIM
+`examples/real_capture.py` does: with the defaults, with `plate=`, on the glossy tables with
+`gloss=0.25` (the truth) and `gloss="auto"`, and on the wood table with thesis 5.4's joint albedo
+(`hj.solvers.solve_albedo_illumination` on the default solve's `A` and photo). The figure is the map's tone-mapped SSIM
 against the panorama on the grid (`hj.metrics.env_errors`), and the fit's relative residual (what
 the texture warning reads). Renders are kept in `DIR/renders/` and reused.
 """
@@ -24,6 +28,7 @@ the texture warning reads). Renders are kept in `DIR/renders/` and reused.
 import argparse
 import json
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +45,7 @@ STATED_PLACE = hj.photo.Placement(0.008, -0.158, 20.0)
 SIZE = 0.12
 ALBEDO = 0.65  # the plain table's, and the wood's median
 TABLE_SIZE = 8.0
+SATIN = 0.25  # GGX roughness of the satin table
 
 
 def wood(texels: int) -> np.ndarray:
@@ -68,7 +74,7 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--hdri", type=Path, default=ROOT / "data_fixtures" / "hdri", help="folder of .hdr panoramas")
     parser.add_argument("--skies", nargs="+", default=["immenstadter_horn", "lebombo"])
-    parser.add_argument("--tables", nargs="+", default=["plain", "wood"], choices=["plain", "wood"])
+    parser.add_argument("--tables", nargs="+", default=["plain", "wood", "satin"], choices=["plain", "wood", "satin"])
     parser.add_argument("--spp", type=int, default=None, help="Mitsuba samples per pixel (default 128; quick 32)")
     args = parser.parse_args(argv)
     hj.enable_compilation_cache()
@@ -83,10 +89,10 @@ def main(argv=None):
     camera = hj.Camera.look_at(EYE, TARGET, (0, 1, 0), fov=FOV, width=W, height=H)
     base = hj.photo.object_mesh("teapot", size=SIZE)
     obj = hj.photo.place(base, TRUE_PLACE)
-    textures = {"plain": ALBEDO, "wood": wood(1024 if args.quick else 4096)}
+    textures = {"plain": ALBEDO, "wood": wood(1024 if args.quick else 4096), "satin": ALBEDO}
     results = dict(renderer=how, photo_size=[W, H], solve_width=width, grid=list(grid.shape), cases=[])
     table = Table()
-    table.append(("sky", "table", "solve", "tm-SSIM", "residual", "seconds"))
+    table.append(("sky", "table", "solve", "tm-SSIM", "residual", "glossy/matte", "roughness", "warns", "seconds"))
     for sky in args.skies:
         path = args.hdri / f"{sky}.hdr"
         path = path if path.exists() else args.hdri / f"{sky}_1k.hdr"
@@ -97,18 +103,37 @@ def main(argv=None):
             for kind, mesh in (("photo", obj), ("plate", None)):
                 file = out / "renders" / f"{sky}_{name}_{kind}_{W}_{spp}.exr"
                 if not file.exists():
-                    scene = hj.photo.capture_test_scene(BOARD, mesh, table=textures[name], table_size=TABLE_SIZE)
+                    scene = hj.photo.capture_test_scene(BOARD, mesh, table=textures[name], table_size=TABLE_SIZE,
+                                                        roughness=SATIN if name == "satin" else None)
                     hj.io.write_exr(file, render(scene, camera, pano))
                 photos[kind] = hj.io.read_exr(file)
-            for solve in ("default", "plate"):
+            solves = {"default": {}, "plate": dict(plate=photos["plate"])}
+            if name != "wood":
+                solves.update({"gloss 0.25": dict(gloss=SATIN), "gloss auto": dict(gloss="auto")})
+            for solve, options in solves.items():
                 t0 = time.perf_counter()
-                rec = hj.photo.reconstruct(BOARD, photos["photo"], intr, base, STATED_PLACE, width=width, grid=grid,
-                                           albedo=ALBEDO, plate=photos["plate"] if solve == "plate" else None)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    rec = hj.photo.reconstruct(BOARD, photos["photo"], intr, base, STATED_PLACE, width=width,
+                                               grid=grid, albedo=ALBEDO, **options)
                 seconds = time.perf_counter() - t0
+                said = "; ".join(sorted({("plate" if "clean plate" in str(w.message) else "gloss")
+                                         for w in caught if "--plate" in str(w.message) or "--gloss" in str(w.message)}))
                 errors = hj.metrics.env_errors(rec.env, truth)
-                results["cases"].append(dict(sky=sky, table=name, solve=solve, env_errors=errors,
-                                             residual=rec.residual, seconds=seconds))
-                table.append((sky, name, solve, f"{errors['ssim_tm']:.3f}", f"{rec.residual:.3f}", f"{seconds:.1f}"))
+                results["cases"].append(dict(sky=sky, table=name, solve=solve, env_errors=errors, residual=rec.residual,
+                                             glare=rec.glare, roughness=rec.roughness, warnings=said, seconds=seconds))
+                if name == "wood" and solve == "default":  # thesis 5.4's joint albedo from the one photo
+                    t1 = time.perf_counter()
+                    joint = hj.solvers.solve_albedo_illumination(rec.T, rec.photo[None], throw=False)
+                    env = np.asarray(joint.env)[0]
+                    extra = dict(env_errors=hj.metrics.env_errors(env, truth), seconds=time.perf_counter() - t1,
+                                 converged=bool(joint.converged))
+                    results["cases"].append(dict(sky=sky, table=name, solve="joint albedo", **extra))
+                    table.append((sky, name, "joint albedo", f"{extra['env_errors']['ssim_tm']:.3f}", "-", "-", "-", "-",
+                                  f"+{extra['seconds']:.1f}"))
+                table.append((sky, name, solve, f"{errors['ssim_tm']:.3f}", f"{rec.residual:.3f}",
+                              "-" if rec.glare is None else f"{rec.glare:.2f}",
+                              str(rec.roughness), said or "-", f"{seconds:.1f}"))
     table.print_all()
     (out / "results.json").write_text(json.dumps(results, indent=2))
     print(f"photos: {how}; wrote {out}/results.json")

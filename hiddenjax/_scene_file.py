@@ -35,6 +35,8 @@ mesh = "plane"              # a bundled fixture ('plane', 'teapot', 'sphere', 'c
 albedo = 0.8                # in [0, 1]: a number, a per-face list, or a grey texture image path
 albedo_srgb = true          # texture images are sRGB-encoded (default true; false: linear)
 observe = true              # its pixels are rows of A (false: it only casts shadows)
+roughness = 0.25            # optional: glossy (GGX roughness in [0.05, 1]; a varnished or satin table)
+ior = 1.5                   # optional, with roughness: the gloss layer's index of refraction
 [surface.transform]         # optional, applied in this order:
 size = 0.1                  # 1. scale so the largest extent is `size` metres (or `scale = s` or [sx, sy, sz])
 rest = true                 # 2. centre x and z on the origin, lowest point on y = 0
@@ -52,7 +54,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import trimesh
 
-from .scene import FIXTURES, Camera, EnvGrid, Scene, Surface, ground_plane, load_mesh
+from .scene import FIXTURES, Camera, EnvGrid, Scene, Surface, check_gloss, ground_plane, load_mesh
 from .scene import fixture as _fixture
 from .transport import DEFAULT_PIXEL_SAMPLES, DEFAULT_SAMPLES
 from .io import read_image, read_toml
@@ -212,9 +214,18 @@ def _surface(s: _Table) -> Surface:
     elif isinstance(albedo, bool) or not isinstance(albedo, (int, float, list)):
         s.fail("albedo", f"must be a number, a per-face list or a texture path, got {albedo!r}")
     observe = s.boolean("observe", True)
+    roughness = s.number("roughness") if s.has("roughness") else None
+    ior = s.number("ior", 1.5)
+    if s.has("ior") and roughness is None:
+        s.fail("ior", "is the glossy interface's index of refraction: give the roughness too")
+    if roughness is not None:
+        try:
+            check_gloss(roughness, ior)
+        except ValueError as e:
+            s.fail("roughness", f"is invalid: {e}")
     s.done()
     try:
-        return Surface(mesh, albedo, observe=observe)
+        return Surface(mesh, albedo, observe=observe, roughness=roughness, ior=ior)
     except ValueError as e:
         s.fail("albedo", f"is invalid: {e}")
 

@@ -154,6 +154,10 @@ def test_reconstruct_refuses_bad_captures_in_one_line_and_writes_nothing(capture
         ([board, str(tmp_path / "white.png"), "--at", "0", "-0.15", *cam], "saturated"),
         ([board, good, "--at", "0", "-0.15", "--times", "0.1", *cam], "--times is for a bracket"),
         ([board, good, good, "--at", "0", "-0.15", *cam], "exposure times"),
+        ([board, good, "--at", "0", "-0.15", "--gloss", "0.01", *cam], "roughness (GGX alpha) must lie in"),
+        ([board, good, "--at", "0", "-0.15", "--gloss", "shiny", *cam], "'auto'"),
+        ([board, good, "--at", "0", "-0.15", "--gloss", "0.2", "--ior", "0.8", *cam], "index of refraction"),
+        ([board, good, "--at", "0", "-0.15", "--ior", "1.4", *cam], "give --gloss too"),
     ]
     for args, words in cases:
         assert main(["reconstruct", *args, *common]) == 1, words

@@ -338,7 +338,7 @@ def test_lights_on_a_textured_table_with_a_reference_photo(tmp_path, capsys):
 
 def test_a_solve_that_stops_early_warns_in_the_library_s_words_and_keeps_the_map(built, capsys, monkeypatch):
     """One rule: the sentence `throw=True` raises is the command's warning, and the map is written."""
-    import hiddenjax.cli as cli
+    import hiddenjax.cli._solve as cli
     import hiddenjax.solvers._illumination as illumination
 
     short = lambda prior, *a: hj.solvers.TVPrior(max_steps=10) if prior == "tv" else original(prior, *a)

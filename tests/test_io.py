@@ -88,6 +88,20 @@ def test_read_errors(tmp_path):
         hj.io.read_hdr(tmp_path / "junk.hdr")
 
 
+def test_bmp_and_tga_photos_read_as_every_other_8_bit_format(tmp_path):
+    """TGA (which OpenCV cannot read) and BMP, grey and RGB, give the stored values over 255; a broken
+    TGA is one clear error."""
+    from PIL import Image
+
+    rgb = (np.random.default_rng(0).random((5, 7, 3)) * 255).astype(np.uint8)
+    for name, array in (("rgb.tga", rgb), ("grey.tga", rgb[..., 0]), ("rgb.bmp", rgb)):
+        Image.fromarray(array).save(tmp_path / name)
+        np.testing.assert_array_equal(np.round(hj.io.read_image(tmp_path / name) * 255), array)
+    (tmp_path / "junk.tga").write_bytes(b"junk")
+    with pytest.raises(ValueError, match="as a TGA image"):
+        hj.io.read_image(tmp_path / "junk.tga")
+
+
 def test_nan_panels_are_drawn_grey():
     img = np.ones((4, 4))
     img[0, 0] = np.nan

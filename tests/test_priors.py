@@ -170,6 +170,8 @@ def test_reweighting_assembles_the_weighted_laplacian_and_solves_each_image_alon
     assert weights.mean() == pytest.approx(1.0) and np.all(weights > 0)
     bright = np.asarray(log_domain_weights(grid, 10 * x, 0.5))
     assert np.allclose(bright, weights)  # relative: the exposure does not change the weights
+    # a zero map (x >= 0 of a photo with no light) weights every edge alike, not inf / inf = NaN
+    assert np.array_equal(np.asarray(log_domain_weights(grid, jnp.zeros_like(x), 0.5)), np.ones_like(weights))
     # reweight=0 is eq. 5.3 itself; with reweighting, a stack is solved one image at a time
     T, _, image = random_problem(3)
     image = np.abs(image)
@@ -330,15 +332,23 @@ def test_hdr_default_beats_the_thesis_prior_on_a_sun_sky(sun_scene):
 
 
 def test_inputs_that_make_no_physical_sense(small_setup):
-    """Zero photos are refused, negative photos solved with x >= 0 warn, and an unregularized problem
-    with fewer observed pixels than unknowns is refused before factorizing."""
+    """Zero photos are refused, partly negative photos solved with x >= 0 warn, wholly negative ones are
+    refused (their map would be zero) naming the signed solve, and an unregularized problem with fewer
+    observed pixels than unknowns is refused before factorizing."""
     grid = hj.EnvGrid(height=4, width=8)
     T = hj.transport_matrix(small_setup.scene, small_setup.camera, grid, samples=2, pixel_samples=1)
     with pytest.raises(ValueError, match="zero at every observed pixel"):
         hj.solve_illumination(T, np.zeros((48, 48), np.float32))
     photo = np.asarray(hj.render(T, np.ones((4, 8), np.float32)))
+    rows = np.asarray(T.image_to_rows(photo))
+    partly = photo - np.percentile(rows, 30)
     with pytest.warns(UserWarning, match="negative radiance"):
-        hj.solve_illumination(T, photo - 1.5 * photo.mean(), prior="l2")
+        hj.solve_illumination(T, partly, prior="l2")
+    for prior in (None, "l2", "tv", "sunsky"):
+        with pytest.raises(ValueError, match="signed map"):
+            hj.solve_illumination(T, -photo, prior=prior)
+    signed = hj.solve_illumination(T, -photo, nonneg=False)
+    assert np.all(np.isfinite(np.asarray(signed.env))) and np.isfinite(float(signed.kkt_residual))
     mask = np.zeros((48, 48), bool)
     mask[-2:, :8] = True  # 16 pixels of the table for 32 unknowns
     few = hj.transport_matrix(small_setup.scene, small_setup.camera, grid, samples=2, pixel_samples=1, mask=mask)

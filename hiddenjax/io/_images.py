@@ -81,7 +81,7 @@ def _imwrite(path, bgr) -> None:
 
 
 HDR_SUFFIXES = (".exr", ".hdr")
-LDR_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
+LDR_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".tga")
 
 
 def srgb_to_linear(v) -> np.ndarray:
@@ -93,8 +93,8 @@ def srgb_to_linear(v) -> np.ndarray:
 def read_image(path, srgb: bool = False) -> np.ndarray:
     """Read an image as float32 `(H, W)` or `(H, W, 3)` RGB, by suffix.
 
-    `.exr` and `.hdr` hold linear radiance and are returned as stored. 8- and 16-bit PNG, TIFF
-    and JPEG are scaled to `[0, 1]` (float TIFFs are kept as stored); with `srgb=True` they are
+    `.exr` and `.hdr` hold linear radiance and are returned as stored. 8- and 16-bit PNG, TIFF,
+    JPEG, BMP and TGA are scaled to `[0, 1]` (float TIFFs are kept as stored); with `srgb=True` they are
     linearized through the sRGB curve (use it for photos saved by ordinary software; raw or
     linear captures need `srgb=False`). Alpha is dropped.
     """
@@ -102,6 +102,18 @@ def read_image(path, srgb: bool = False) -> np.ndarray:
     if srgb and Path(path).suffix.lower() not in HDR_SUFFIXES:
         a = srgb_to_linear(a)
     return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def _read_tga(path):
+    """A Truevision TGA file (OpenCV has no reader for it) as OpenCV would return it: BGR(A) or grey, or None."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            a = np.asarray(image.convert("RGBA" if "A" in image.mode else "RGB" if image.mode != "L" else "L"))
+    except (OSError, UnidentifiedImageError):
+        return None
+    return a[..., [2, 1, 0, 3][: a.shape[2]]] if a.ndim == 3 else a
 
 
 def read_stored(path) -> tuple[np.ndarray, int]:
@@ -119,7 +131,7 @@ def read_stored(path) -> tuple[np.ndarray, int]:
         return read_hdr(path), 32
     if not path.is_file():
         raise ValueError(f"image file not found: {path}")
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    raw = _read_tga(path) if suffix == ".tga" else cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ValueError(f"cannot read {path} as a {suffix[1:].upper()} image")
     if raw.ndim == 3:

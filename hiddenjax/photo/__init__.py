@@ -34,7 +34,10 @@ from ._capture import silhouette as silhouette
 from ._capture import table_mask as table_mask
 from ._plate import Plate as Plate
 from ._plate import clean_plate as clean_plate
+from ._reconstruct import GLARE_GAIN as GLARE_GAIN
 from ._reconstruct import TEXTURE_RESIDUAL as TEXTURE_RESIDUAL
+from ._reconstruct import choose_roughness as choose_roughness
+from ._reconstruct import fit_residual as fit_residual
 from ._reconstruct import Reconstruction as Reconstruction
 from ._reconstruct import reconstruct as reconstruct
 from ._reconstruct import scene_toml as scene_toml

@@ -108,12 +108,14 @@ def place(base: trimesh.Trimesh, placement: Placement) -> trimesh.Trimesh:
 
 
 def capture_scene(base: trimesh.Trimesh, placement: Placement, albedo: float = 1.0,
-                  table_size: float = 4.0) -> Scene:
-    """The table plane (albedo `albedo`, observed) and the object standing on it (not observed)."""
+                  table_size: float = 4.0, roughness: float | None = None, ior: float = 1.5) -> Scene:
+    """The table plane (albedo `albedo`, observed; glossy with a `roughness`) and the object standing
+    on it (not observed)."""
     lift = 1e-4 * float(np.ptp(base.vertices, axis=0).max())  # no z-fighting with the table
     obj = place(base, placement)
     obj.apply_translation([0.0, lift, 0.0])
-    return Scene([Surface(ground_plane(table_size), albedo, observe=True), Surface(obj, 0.5, observe=False)])
+    return Scene([Surface(ground_plane(table_size), albedo, observe=True, roughness=roughness, ior=ior),
+                  Surface(obj, 0.5, observe=False)])
 
 
 def silhouette(mesh: trimesh.Trimesh, camera: Camera, supersample: int = 4) -> np.ndarray:

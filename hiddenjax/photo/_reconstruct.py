@@ -23,7 +23,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from ..scene import Camera, EnvGrid, Scene
+from ..scene import Camera, EnvGrid, Scene, check_gloss
 from ..solvers import solve_illumination
 from ..transport import TransportMatrix, transport_matrix
 from ._board import Board
@@ -37,6 +37,11 @@ TABLE_SIZE = 4.0  # metres: the table plane of the inferred scene
 # The relative residual above which a table without a plate is taken to be textured: the rendered
 # captures of benchmarks/bench_tables.py leave 0.03-0.06 on a plain table, 0.15-0.2 on wood grain.
 TEXTURE_RESIDUAL = 0.06
+# The glare check of a matte solve: small solves with a glossy table of these roughnesses beside the
+# matte one; a glossy residual below GLARE_GAIN of the matte one warns. Measured on the rendered
+# captures of benchmarks/bench_tables.py (quick): satin tables 0.89-0.90, plain 1.0-1.1, wood 0.97-0.99.
+GLARE_CHECK = (0.14, 0.25)
+GLARE_GAIN = 0.93
 
 
 class Reconstruction(NamedTuple):
@@ -57,6 +62,9 @@ class Reconstruction(NamedTuple):
     refine_camera: Camera
     plate: Plate | None = None  # the clean plate in the photo's view (full size)
     residual: float = 0.0  # ||y - A x|| / ||y|| on the observed pixels
+    roughness: float | None = None  # the table's gloss (None: matte)
+    glare: float | None = None  # the glare check: a glossy table's residual over the matte one's (None: not run)
+    saturated: np.ndarray | None = None  # pixels (solve size) touching a saturated one: left out
 
 
 def undistort_photo(radiance, saturated, intrinsics: Intrinsics):
@@ -99,6 +107,9 @@ def reconstruct(
     albedo: float = 1.0,
     plate=None,
     plate_saturated=None,
+    gloss=None,
+    ior: float = 1.5,
+    check_glare: bool = True,
     seed: int = 0,
     progress: bool = False,
 ) -> Reconstruction:
@@ -109,7 +120,12 @@ def reconstruct(
     `plate` is a clean plate (the same view without the object, the board in place; linear radiance
     at the calibration's size, `plate_saturated` its clipped pixels): a textured table's albedo
     cancels (`_plate`). Without one, a fit that leaves more than `TEXTURE_RESIDUAL` of the photo
-    unexplained warns that the table looks textured."""
+    unexplained warns that the table looks textured.
+
+    `gloss` makes the table glossy (`Surface(roughness=...)`, index `ior`): a GGX roughness, or
+    `"auto"` to choose it from the photo (`choose_roughness`). Without it the table is matte, and
+    (with `check_glare`) small solves with a glossy table beside the matte one (`GLARE_CHECK`) warn
+    when gloss explains the photo better (a residual below `GLARE_GAIN` of the matte one's)."""
     radiance = np.asarray(radiance, dtype=np.float32)
     H0, W0 = radiance.shape[:2]
     if (W0, H0) != (intrinsics.width, intrinsics.height):
@@ -164,10 +180,17 @@ def reconstruct(
     height = int(round(width * H0 / W0))
     camera = pose.camera(width, height)
     small = _resize(photo, width, height)
-    mask = table_mask(board, camera, saturated=_resize_any(saturated, width, height))
+    clipped = _resize_any(saturated, width, height)
+    mask = table_mask(board, camera, saturated=clipped)
     if used_plate is not None:
         mask &= ~_resize_any(table & ~used_plate.valid, width, height)
-    scene = capture_scene(base, placement, albedo=albedo, table_size=TABLE_SIZE)
+    if isinstance(gloss, str):
+        if gloss != "auto":
+            raise ValueError(f"gloss must be a roughness (GGX alpha) or 'auto', got {gloss!r}")
+        gloss = choose_roughness(base, placement, pose, photo, saturated, board, albedo, ior, grid, seed).roughness
+    elif gloss is not None:
+        check_gloss(gloss, ior)
+    scene = capture_scene(base, placement, albedo=albedo, table_size=TABLE_SIZE, roughness=gloss, ior=ior)
     T = transport_matrix(scene, camera, grid, samples=samples, pixel_samples=pixel_samples, mask=mask, seed=seed,
                          progress=progress)
     if T.A.shape[0] < 16:
@@ -180,16 +203,35 @@ def reconstruct(
                       f"varies (wood grain, a print) looks like this; photograph the same view without the object "
                       f"and give it as a clean plate (--plate, plate=), or put a sheet of paper under the object",
                       UserWarning, stacklevel=2)
+    glare = None
+    if gloss is None and check_glare:
+        choice = choose_roughness(base, placement, pose, photo, saturated, board, albedo, ior, grid, seed,
+                                  candidates=GLARE_CHECK)
+        glare = min(choice.residuals[r] for r in GLARE_CHECK) / choice.residuals[None]
+        if glare < GLARE_GAIN:
+            warnings.warn(f"a glossy table explains the photo better than a matte one (its residual is {glare:.0%} of "
+                          f"the matte table's): the table shows glare; model it with --gloss auto (gloss='auto') or "
+                          f"its roughness", UserWarning, stacklevel=2)
     return Reconstruction(pose, base, placement, refinement, camera, small, np.asarray(T.mask), scene, T,
-                          env, solution, target, refine_camera, used_plate, residual)
+                          env, solution, target, refine_camera, used_plate, residual, gloss, glare, clipped)
+
+
+def _gloss_keys(surface) -> str:
+    g = surface.gloss
+    return "" if g is None else f"roughness = {g.roughness!r}\nior = {g.ior!r}\n"
+
+
+def _rows_and_fit(T: TransportMatrix, image, env):
+    A = np.asarray(T.A, dtype=np.float64)
+    y = np.asarray(image, dtype=np.float64).reshape(-1, *np.shape(image)[2:])[np.asarray(T.pixels)]
+    x = np.asarray(env, dtype=np.float64).reshape(A.shape[1], *np.shape(env)[2:])
+    return y, A @ x
 
 
 def fit_residual(T: TransportMatrix, image, env) -> float:
     """`||y - A x|| / ||y||` over the observed pixels (every channel) of `image` and the map `env`."""
-    A = np.asarray(T.A, dtype=np.float64)
-    y = np.asarray(image, dtype=np.float64).reshape(-1, *np.shape(image)[2:])[np.asarray(T.pixels)]
-    x = np.asarray(env, dtype=np.float64).reshape(A.shape[1], *np.shape(env)[2:])
-    return float(np.linalg.norm(y - A @ x) / max(float(np.linalg.norm(y)), 1e-30))
+    y, fit = _rows_and_fit(T, image, env)
+    return float(np.linalg.norm(y - fit) / max(float(np.linalg.norm(y)), 1e-30))
 
 
 def scene_toml(rec: Reconstruction, grid: EnvGrid, samples: int, pixel_samples: int, seed: int, albedo: float,
@@ -210,10 +252,52 @@ def scene_toml(rec: Reconstruction, grid: EnvGrid, samples: int, pixel_samples: 
         f"[transport]\nsamples = {samples}\npixel_samples = {pixel_samples}\nseed = {seed}\n",
         f"[camera]\nwidth = {cam.width}\nheight = {cam.height}\nK = {fmt(K)}\nR = {fmt(R)}\nt = {fmt(t)}\n",
         f'[mask]\nimage = "{mask_file}"\n',
-        f'[[surface]]\nmesh = "plane"\nalbedo = {albedo!r}\n[surface.transform]\nscale = [{TABLE_SIZE}, 1.0, {TABLE_SIZE}]\n',
+        f'[[surface]]\nmesh = "plane"\nalbedo = {albedo!r}\n' + _gloss_keys(rec.scene[0])
+        + f'[surface.transform]\nscale = [{TABLE_SIZE}, 1.0, {TABLE_SIZE}]\n',
         f'[[surface]]\nmesh = "{object_file}"  # metres, resting at the origin\nalbedo = 0.5\nobserve = false',
         "[surface.transform]",
         f"rotation = [0.0, {float(p.yaw)!r}, 0.0]",
         f"translation = [{float(p.x)!r}, {1e-4 * extent!r}, {float(p.z)!r}]",
         "",
     ])
+
+
+AUTO_ROUGHNESS = (0.08, 0.14, 0.25, 0.4, 0.6)  # the candidates of gloss="auto", besides matte
+AUTO_WIDTH = 48  # pixels across of the candidates' small solves
+AUTO_BAND = 0.03  # residuals within this fraction of the least count as explaining the photo as well
+
+
+class RoughnessChoice(NamedTuple):
+    """`choose_roughness`'s answer: the roughness (None: matte) and each candidate's residual."""
+
+    roughness: float | None
+    residuals: dict
+
+
+def choose_roughness(base, placement: Placement, pose: BoardPose, photo, saturated, board: Board, albedo: float,
+                     ior: float, grid: EnvGrid, seed: int = 0, candidates=AUTO_ROUGHNESS) -> RoughnessChoice:
+    """The table's gloss that best explains the photo: for matte and each of `candidates`, a small
+    transport (`AUTO_WIDTH` pixels across, half the grid's rows and columns, 4 directions per cell)
+    and the default solve. Of the candidates within `AUTO_BAND` of the least relative residual
+    (`fit_residual`), matte if it is one, else the roughest wins.
+
+    A glossy table's glare moves with the view across the table, which no map under a matte table
+    reproduces; on a matte table the candidates only add a lobe the photo does not have. Between
+    lobes the residual barely tells: the table reflects the sky blurred by the lobe, and a sharper
+    lobe under a blurrier map explains the photo as well, while fitting more of its noise. On the
+    satin captures of `benchmarks/bench_tables.py` the residuals of roughness 0.08-0.25 were within
+    1-3% of each other, the sharpest the least."""
+    H0, W0 = photo.shape[:2]
+    height = max(8, int(round(AUTO_WIDTH * H0 / W0)))
+    camera = pose.camera(AUTO_WIDTH, height)
+    small = _resize(photo, AUTO_WIDTH, height)
+    mask = table_mask(board, camera, saturated=_resize_any(saturated, AUTO_WIDTH, height))
+    coarse = EnvGrid(max(4, grid.height // 2), max(8, grid.width // 2))
+    residuals = {}
+    for roughness in (None, *candidates):
+        scene = capture_scene(base, placement, albedo=albedo, table_size=TABLE_SIZE, roughness=roughness, ior=ior)
+        T = transport_matrix(scene, camera, coarse, samples=4, pixel_samples=1, mask=mask, seed=seed, progress=False)
+        residuals[roughness] = fit_residual(T, small, np.asarray(solve_illumination(T, small).env))
+    best = min(residuals.values())
+    near = [r for r, v in residuals.items() if v <= (1 + AUTO_BAND) * best]
+    return RoughnessChoice(None if None in near else max(near), residuals)

@@ -82,11 +82,13 @@ def board_mesh(board: Board, lift: float = 1e-4):
 
 
 def capture_test_scene(board: Board, mesh, *, object_albedo: float = 0.08, table=0.8, black: float = 0.05,
-                       white: float = 0.85, table_size: float = 8.0) -> Scene:
+                       white: float = 0.85, table_size: float = 8.0, roughness: float | None = None,
+                       ior: float = 1.5) -> Scene:
     """The scene of a rendered capture: a `table_size` table (albedo `table`: a constant or a grey
-    texture over the table's UV square, `hj.scenes.wood_texture`), the board (`white`/`black`) lying
-    at its centre, and `mesh` (world coordinates, standing on y = 0; None: the clean plate, no object)."""
-    surfaces = [Surface(ground_plane(table_size), table),
+    texture over the table's UV square, `hj.scenes.wood_texture`; glossy with a `roughness`), the board
+    (`white`/`black`, matte paper) lying at its centre, and `mesh` (world coordinates, standing on
+    y = 0; None: the clean plate, no object)."""
+    surfaces = [Surface(ground_plane(table_size), table, roughness=roughness, ior=ior),
                 Surface(board_mesh(board), np.where(board.texture(4000.0) > 0.5, white, black))]
     if mesh is not None:
         obj = mesh.copy()

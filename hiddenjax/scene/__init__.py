@@ -7,6 +7,8 @@ from ._fixtures import fixture as fixture
 from ._fixtures import mura_pattern as mura_pattern
 from ._fixtures import sphere as sphere
 from ._fixtures import teapot as teapot
+from ._gloss import Gloss as Gloss
+from ._gloss import check_gloss as check_gloss
 from ._grid import EnvGrid as EnvGrid
 from ._grid import direction as direction
 from ._grid import direction_to_angles as direction_to_angles

@@ -6,6 +6,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ._gloss import Gloss
+
 
 def load_mesh(mesh_or_path) -> trimesh.Trimesh:
     """A `trimesh.Trimesh` from a mesh or a file path (OBJ, PLY, STL, GLB, ...), scenes flattened."""
@@ -40,11 +42,15 @@ class Surface:
       mesh's per-vertex UVs (`mesh.visual.uv`, `v` up).
     - `observe`: whether camera pixels that see this surface belong to the default mask of a
       transport matrix. `False` (the occluder itself) still casts shadows.
+    - `roughness`: None (default) for a matte surface; a GGX roughness in [0.05, 1] makes it
+      glossy, a diffuse base of this albedo under a rough dielectric interface of index `ior`
+      (default 1.5: varnish, lacquer), the material of Mitsuba's `roughplastic` (`scene._gloss`).
     """
 
-    def __init__(self, mesh, albedo=0.8, observe: bool = True):
+    def __init__(self, mesh, albedo=0.8, observe: bool = True, roughness: float | None = None, ior: float = 1.5):
         self.mesh = load_mesh(mesh)
         self.observe = bool(observe)
+        self.gloss = None if roughness is None else Gloss(roughness, ior)
         albedo = np.asarray(albedo, dtype=np.float64)
         if not np.all(np.isfinite(albedo)) or albedo.size == 0:
             raise ValueError("albedo must be finite and non-empty")
@@ -103,7 +109,8 @@ class Surface:
 
     def __repr__(self):
         kind = {0: f"{float(self.albedo):.3g}", 1: "per-face", 2: f"texture {self.albedo.shape}"}
-        return f"Surface({len(self.triangles)} faces, albedo={kind[self.albedo.ndim]}, observe={self.observe})"
+        gloss = "" if self.gloss is None else f", roughness={self.gloss.roughness:g}, ior={self.gloss.ior:g}"
+        return f"Surface({len(self.triangles)} faces, albedo={kind[self.albedo.ndim]}, observe={self.observe}{gloss})"
 
 
 class Scene:

@@ -77,9 +77,12 @@ class SoftTransport(eqx.Module):
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         caster = RayCaster(scene)
         S = int(pixel_samples)
-        hits, _ = primary_hits(caster, camera, S, seed)
+        if any(s.gloss is not None for s in scene):
+            raise ValueError("the sigmoid-shadow transport models diffuse surfaces; a glossy surface's lobe "
+                             "needs hj.transport_matrix (Embree)")
+        hits, directions = primary_hits(caster, camera, S, seed)
         pixels = _observed_pixels(scene, hits, (camera.height, camera.width), S, mask, False)
-        pts = _Points(hits, (pixels[:, None] * S + np.arange(S)).reshape(-1), caster.offset)
+        pts = _Points(hits, (pixels[:, None] * S + np.arange(S)).reshape(-1), caster.offset, directions)
         normal, x = pts.normal, pts.position
         normals, which = np.unique(normal, axis=0, return_inverse=True)
         which = which.reshape(-1)

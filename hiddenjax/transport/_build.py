@@ -122,6 +122,9 @@ def _check_build_args(scene, camera, samples, pixel_samples, bounces=0, bounce_s
                              f"(defaults: samples=16, pixel_samples=4, bounces=0); use at most {limit}")
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    if bounces and any(s.gloss is not None for s in scene):
+        raise ValueError("interreflections (bounces > 0) are modelled between diffuse surfaces; with a glossy "
+                         "surface use bounces=0")
     if not np.all(np.isfinite(np.asarray(camera.rotation))) or not np.all(np.isfinite(np.asarray(camera.intrinsics))):
         raise ValueError("camera parameters contain non-finite values")
 
@@ -169,11 +172,11 @@ class BuildPlan:
     def __init__(self, scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder):
         self.lighting = DirectLighting(scene, grid, samples)
         self.H, self.W, self.S = camera.height, camera.width, pixel_samples
-        hits, _ = primary_hits(self.lighting.caster, camera, self.S, seed)
+        hits, directions = primary_hits(self.lighting.caster, camera, self.S, seed)
         self.pixels = _observed_pixels(scene, hits, (self.H, self.W), self.S, mask, keep_occluder)
         self.P, self.N = len(self.pixels), grid.size
         sel = (self.pixels[:, None] * self.S + np.arange(self.S)).reshape(-1)
-        self.points = _Points(hits, sel, self.lighting.caster.offset)
+        self.points = _Points(hits, sel, self.lighting.caster.offset, directions)
         self.chunk = chunk_pixels(self.S, self.N)
         self.starts = list(range(0, self.P, self.chunk))
 
@@ -236,17 +239,20 @@ def _observed_pixels(scene, hits: Hits, shape, S, mask, keep_occluder) -> np.nda
 
 
 class _Points:
-    """Footprint points as flat arrays: position (offset off the surface), normal, surface, albedo."""
+    """Footprint points as flat arrays: position (offset off the surface), normal, surface, albedo,
+    and the unit direction towards the camera (`view`)."""
 
-    def __init__(self, hits: Hits, sel, offset: float):
+    def __init__(self, hits: Hits, sel, offset: float, directions):
         self.normal = hits.normal[sel]
         self.position = hits.position[sel] + offset * self.normal
         self.surface = hits.surface[sel]
         self.albedo = hits.albedo[sel]
+        d = np.asarray(directions, dtype=np.float64)[sel]
+        self.view = -d / np.linalg.norm(d, axis=1, keepdims=True)
 
     def take(self, s):
         out = object.__new__(_Points)
-        for name in ("normal", "position", "surface", "albedo"):
+        for name in ("normal", "position", "surface", "albedo", "view"):
             setattr(out, name, getattr(self, name)[s])
         return out
 
@@ -258,8 +264,8 @@ def _chunk_rows(lighting: DirectLighting, pts: _Points, S: int, bounces: int, pa
     part of `A` unchanged for a given seed.
     """
     seed, chunk = seed
-    E, rays = lighting.rows(pts.position, pts.normal, pts.surface, np.random.default_rng([seed, 1, chunk]))
-    radiance = (pts.albedo / np.pi)[:, None] * E
+    radiance, rays = lighting.radiance_rows(pts.position, pts.normal, pts.surface, pts.albedo, pts.view,
+                                            np.random.default_rng([seed, 1, chunk]), group=S)
     if bounces:
         indirect, more = _indirect(lighting, pts, bounces, paths, np.random.default_rng([seed, 2, chunk]))
         radiance += indirect

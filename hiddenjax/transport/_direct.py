@@ -11,6 +11,13 @@ For a point `x` with normal `n` and env pixel `j`, the row entry (before `albedo
 `V_k` needs an Embree query only when `w_k` points into the bounding cone of an occluder
 (a surface other than a planar one the point lies on); every other sample is visible by
 construction. The `S` samples are stratified in the pixel and independent per point.
+
+Glossy surfaces (`Surface(roughness=...)`, `scene._gloss`) seen from a view direction `v`: the
+diffuse base weights each direction by `t(n.w) n.w` instead of `n.w` (its unoccluded part by a
+fixed quadrature per distinct normal, the occluded part by the same samples), and the specular lobe
+`f_s(v, w) n.w` adds `integral over Omega_j of V f_s n.w dw`: its unoccluded part by a fixed
+stratified quadrature per pixel (`k x k` points per cell where the lobe peaks, the cell's centre
+elsewhere), minus the occluded samples' `(Omega_j/S) sum_k (1 - V_k) f_s(v, w_k) n.w_k`.
 """
 
 from typing import NamedTuple
@@ -18,11 +25,13 @@ from typing import NamedTuple
 import numpy as np
 
 from ..scene import EnvGrid, Scene
+from ..scene._gloss import specular
 from ..scene._sampling import stratified_square
 from ._embree import RayCaster
 
 # Direction samples handled per vectorized block: bounds the temporaries to ~30 MB per thread.
 _BLOCK = 1 << 18
+_LOBE_POINTS = 32  # glossy points per block of the lobe's quadrature: (32, N, 64) temporaries
 
 
 class DirectLighting:
@@ -43,17 +52,76 @@ class DirectLighting:
         self._horizons = {}  # a few distinct normals (planar receivers) -> their horizon classes
         self.spheres = [s.bounding_sphere() for s in scene]
         self.planar = np.array([s.planar for s in scene])
+        self.gloss = [s.gloss for s in scene]
+        self.glossy = np.array([g is not None for g in self.gloss] + [False])  # index -1: a miss
 
     def rows(self, x, n, surface, rng: np.random.Generator):
         """`E (M, N)` float64 for points `x (M, 3)` (already offset), unit normals `n (M, 3)`.
 
         `surface (M,)` is the index of the surface each point lies on. Returns `(E, rays)` with
-        the number of Embree occlusion queries issued.
+        the number of Embree occlusion queries issued. Every surface is taken as diffuse.
         """
         split = self.split_rows(x, n, surface, rng)
         E = split.closed[split.which]
         E[split.m, split.j] += split.delta  # (m, j) pairs are unique
         return E, split.rays
+
+    def radiance_rows(self, x, n, surface, albedo, view, rng: np.random.Generator, group: int = 1):
+        """Outgoing radiance per unit env radiance, `(M, N)`, of points seen from unit directions
+        `view (M, 3)` (towards the camera): `albedo/pi E` on diffuse surfaces, the glossy material's
+        diffuse base and lobe on glossy ones (module docstring). `group` consecutive points share one
+        pixel (its footprint samples): the lobe's unoccluded part is evaluated once per group."""
+        split = self.split_rows(x, n, surface, rng, view=view)
+        E = split.closed[split.which]
+        E[split.m, split.j] += split.delta
+        out = (albedo / np.pi)[:, None] * E
+        glossy = self.glossy[surface]
+        if not np.any(glossy):
+            return out, split.rays
+        cos_v = np.einsum("mc,mc->m", n, view)
+        for k, g in enumerate(self.gloss):
+            if g is not None:
+                on = surface == k
+                out[on] *= (g.diffuse_scale * g.t(cos_v[on]))[:, None]
+        out += self._lobe(n, view, surface, group)
+        out[split.m, split.j] += split.lobe_delta
+        return out, split.rays
+
+    def _lobe(self, n, view, surface, group: int) -> np.ndarray:
+        """`(M, N)`: the unoccluded lobe `integral over Omega_j of f_s(v, w) max(0, n.w) dw`, zero on
+        diffuse points; evaluated at the first point of each `group` and shared by the group."""
+        M, N = len(n), self.grid.size
+        out = np.zeros((M, N))
+        for k, g in enumerate(self.gloss):
+            if g is None:
+                continue
+            first = np.nonzero((surface == k) & (np.arange(M) % group == 0))[0]
+            for start in range(0, len(first), _LOBE_POINTS):
+                idx = first[start : start + _LOBE_POINTS]
+                lobe = self._lobe_block(n[idx], view[idx], g)
+                for r in range(group):  # the group's points where they lie on the surface too
+                    rows = idx + r
+                    keep = (rows < M) & (surface[np.minimum(rows, M - 1)] == k)
+                    out[rows[keep]] = lobe[keep]
+        return out
+
+    def _lobe_block(self, n, v, g) -> np.ndarray:
+        """The unoccluded lobe of a few points: midpoints everywhere, `k x k` points per cell where
+        the half vector of the cell's centre is within `tan theta_h < 4 alpha` of the normal."""
+        alpha, eta = g.roughness, g.ior
+        k = int(np.clip(np.ceil(0.4 / alpha), 2, 8))
+        cos_v = np.einsum("mc,mc->m", n, v)
+        w = self.centres[None, :, :]  # (1, N, 3)
+        value, tan_h = _lobe_at(n[:, None, :], v[:, None, :], cos_v[:, None], w, alpha, eta)
+        out = value * self.omega[None, :]
+        peak = tan_h < 4 * alpha
+        m, j = np.nonzero(peak)
+        if len(m):
+            u = (np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), -1).reshape(-1, 2) + 0.5) / k
+            fine = self.grid.sample_directions(j[:, None], np.broadcast_to(u, (len(j), k * k, 2)))  # (P, k^2, 3)
+            value, _ = _lobe_at(n[m][:, None, :], v[m][:, None, :], cos_v[m][:, None], fine, alpha, eta)
+            out[m, j] = value.mean(axis=1) * self.omega[j]
+        return out
 
     def _horizon(self, normals):
         """`(above (K, N), straddle (K, N), closed (K, N))` of distinct normals; cached for planar receivers."""
@@ -72,20 +140,35 @@ class DirectLighting:
         lo, _ = self.grid.cosine_range(normals)
         return np.where(lo >= 0, normals @ self.moments.T, 0.0)
 
-    def split_rows(self, x, n, surface, rng: np.random.Generator) -> "SplitRows":
+    def split_rows(self, x, n, surface, rng: np.random.Generator, view=None) -> "SplitRows":
         """`E = closed[which] + sparse(m, j, delta)`: the rows of `rows` as their two parts.
 
         `closed (K, N)` is the unoccluded closed form of the `K` distinct normals (`which (M,)`
         picks each point's), the same for every point with that normal; `(m, j, delta)` the
         Monte Carlo terms, nonzero only where a pixel straddles the horizon or an occluder's cone
         reaches it (few pairs for a point on a table: the sparse part of the matrix-free operator).
+
+        With `view (M, 3)`, points on glossy surfaces weight directions by `t(n.w) n.w` (their
+        `closed` part by quadrature) and `lobe_delta` holds the lobe's occluded samples at the same
+        pairs (module docstring); without, every surface is taken as diffuse.
         """
         M, N, S = len(x), self.grid.size, self.samples
-        # Horizon classes and the closed-form term depend on the normal only: planar receivers
-        # share a handful of normals, so evaluate them once per distinct normal.
-        normals, which = np.unique(n, axis=0, return_inverse=True)
+        glossy = self.glossy[surface] if view is not None else np.zeros(M, bool)
+        # Horizon classes and the closed-form term depend on the normal (and a glossy surface's
+        # material) only: planar receivers share a handful of normals, so evaluate them once per key.
+        material = np.where(glossy, surface + 1, 0)
+        keys, which = np.unique(np.concatenate([n, material[:, None]], axis=1), axis=0, return_inverse=True)
         which = which.reshape(-1)
+        normals = np.ascontiguousarray(keys[:, :3])
         up, cross, closed = self._horizon(normals)
+        if np.any(keys[:, 3] > 0):
+            closed = closed.copy()
+            for key in np.nonzero(keys[:, 3] > 0)[0]:
+                cache = (keys[key].tobytes(), "gloss")
+                if cache not in self._horizons:
+                    self._horizons[cache] = self._weighted_closed(normals[key], self.gloss[int(keys[key, 3]) - 1],
+                                                                  up[key])
+                closed[key] = self._horizons[cache]
         above, straddle = up[which], cross[which]
 
         cones = []  # (active (M,), axis (M,3), cos_alpha (M,)) per occluder
@@ -117,6 +200,7 @@ class DirectLighting:
 
         m_idx, j_idx = np.nonzero(straddle | (above & candidate))
         delta = np.zeros(len(m_idx))
+        lobe_delta = np.zeros(len(m_idx)) if np.any(glossy) else None
         rays = 0
         per_block = max(1, _BLOCK // S)
         for start in range(0, len(m_idx), per_block):
@@ -131,11 +215,35 @@ class DirectLighting:
             kk, ss = np.nonzero(trace)
             occluded[kk, ss] = self.caster.occluded(x[m[kk]], w[kk, ss])
             rays += len(kk)
+            weight = cos
+            if lobe_delta is not None:  # glossy points: t(n.w) n.w, and the lobe's occluded samples
+                weight = cos.astype(np.float64)
+                for k, g in enumerate(self.gloss):
+                    on = glossy[m] & (surface[m] == k)
+                    if g is None or not np.any(on):
+                        continue
+                    weight[on] = cos[on] * g.t(cos[on])
+                    cos_v = np.einsum("kc,kc->k", n[m[on]], view[m[on]])
+                    lobe, _ = _lobe_at(n[m[on]][:, None, :], view[m[on]][:, None, :], cos_v[:, None], w[on],
+                                       g.roughness, g.ior)
+                    lobe_delta[start + np.nonzero(on)[0]] = -self.omega[j[on]] / S * np.sum(lobe * occluded[on], axis=1)
             term = np.where(
-                straddle[m, j][:, None], np.where(occluded, 0.0, np.maximum(cos, 0.0)), np.where(occluded, -cos, 0.0)
+                straddle[m, j][:, None], np.where(occluded, 0.0, np.maximum(weight, 0.0)),
+                np.where(occluded, -weight, 0.0)
             )
             delta[start : start + len(m)] = self.omega[j] / S * term.sum(axis=1)
-        return SplitRows(closed, which, m_idx, j_idx, delta, rays)
+        return SplitRows(closed, which, m_idx, j_idx, delta, rays, lobe_delta)
+
+    def _weighted_closed(self, normal, gloss, above) -> np.ndarray:
+        """`(N,)`: `integral over Omega_j of t(n.w) n.w dw` for the cells wholly above the horizon of
+        `normal`, by a fixed `8 x 8` midpoint quadrature per cell (smooth: `t` varies slowly); else 0."""
+        cells = np.nonzero(above)[0]
+        u = (np.stack(np.meshgrid(np.arange(8), np.arange(8), indexing="ij"), -1).reshape(-1, 2) + 0.5) / 8
+        w = self.grid.sample_directions(cells[:, None], np.broadcast_to(u, (len(cells), 64, 2)))
+        cos = w @ normal
+        out = np.zeros(self.grid.size)
+        out[cells] = np.mean(cos * gloss.t(cos), axis=1) * self.omega[cells]
+        return out
 
 
 class SplitRows(NamedTuple):
@@ -147,3 +255,16 @@ class SplitRows(NamedTuple):
     j: np.ndarray  # (nnz,) env pixel index
     delta: np.ndarray  # (nnz,) float64
     rays: int
+    lobe_delta: np.ndarray | None = None  # (nnz,) the glossy lobe's occluded part (with a view)
+
+
+def _lobe_at(n, v, cos_v, w, alpha, eta):
+    """`(f_s(v, w) max(0, n.w), tan theta_h)` for broadcastable normals, views, `cos_v` and
+    directions `w (..., 3)` (`scene._gloss.specular`)."""
+    cos_w = np.sum(n * w, axis=-1)
+    h = v + w
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+    cos_h = np.sum(n * h, axis=-1)
+    value = specular(cos_v, cos_w, cos_h, np.sum(v * h, axis=-1), alpha, eta)
+    tan_h = np.sqrt(np.maximum(1 - cos_h**2, 0.0)) / np.maximum(cos_h, 1e-12)
+    return value, tan_h

@@ -78,7 +78,8 @@ def upsample_for_mitsuba(envmap, factor: int = 8) -> np.ndarray:
 def _scene_dict(mi, scene: Scene, camera: Camera, folder: Path, integrator: dict) -> dict:
     """Mitsuba's scene dictionary for our surfaces (PLY files written to `folder`), camera and integrator.
 
-    Emitters are the caller's. Constant albedo or a grey texture (Mitsuba's bitmap, bilinear and
+    Emitters are the caller's. A glossy surface is Mitsuba's `roughplastic` (GGX, `nonlinear=false`,
+    air outside). Constant albedo or a grey texture (Mitsuba's bitmap, bilinear and
     repeating as `Surface`'s; its rows are flipped: Mitsuba puts bitmap row 0 at `v = 0`, ours at
     `v = 1`); a centred pinhole camera with square pixels only.
     """
@@ -99,11 +100,15 @@ def _scene_dict(mi, scene: Scene, camera: Camera, folder: Path, integrator: dict
                            "filter_type": "bilinear", "wrap_mode": "repeat"}
         path = folder / f"surface{k}.ply"
         surface.mesh.export(path)
+        bsdf = {"type": "diffuse", "reflectance": reflectance}
+        if surface.gloss is not None:  # the same material term by term (scene._gloss)
+            bsdf = {"type": "roughplastic", "distribution": "ggx", "alpha": surface.gloss.roughness,
+                    "int_ior": surface.gloss.ior, "ext_ior": 1.0, "nonlinear": False, "diffuse_reflectance": reflectance}
         shapes[f"surface{k}"] = {
             "type": "ply", "filename": str(path), "face_normals": True,
             # two-sided, as hiddenjax's surfaces are (Embree's normal faces the ray): Mitsuba's diffuse
             # BSDF alone is black from behind, so a mesh wound inward (the teapot) would be black
-            "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": reflectance}},
+            "bsdf": {"type": "twosided", "bsdf": bsdf},
         }
     return {
         "type": "scene",

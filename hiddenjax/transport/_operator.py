@@ -388,6 +388,9 @@ def transport_operator(
         raise ValueError(f"products must be one of {PRODUCTS}, got {products!r}")
     budget = parse_memory(memory)
     _check_build_args(scene, camera, samples, pixel_samples, seed=seed)
+    if any(s.gloss is not None for s in scene):
+        raise ValueError("the matrix-free operator splits A into a part per surface normal, which a glossy "
+                         "surface's view-dependent lobe does not have; build the dense hj.transport_matrix")
     threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
     guard(need_setup(camera, grid, pixel_samples, threads), budget, "memory",
           "use fewer pixels (a smaller image) or fewer pixel_samples, or a coarser grid")
