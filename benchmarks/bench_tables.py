@@ -16,13 +16,14 @@ involved). Without Mitsuba the reference renderer (direct light) takes its place
   `roughplastic`).
 
 Each capture is photographed twice: with the object and as a clean plate (the same view without
-it). Each is solved at 128 pixels across on a 32x64 grid (`--quick`: 320x240 photos, 64 pixels
-across, 16x32) with the object stated 8 mm and 10 degrees off its true place, as
+it). Each is solved at 128 pixels across on a 32x64 grid (`--quick`: one sky, 320x240 photos, 64
+pixels across, 16x32) with the object stated 8 mm and 10 degrees off its true place, as
 `examples/real_capture.py` does: with the defaults, with `plate=`, on the glossy tables with
 `gloss=0.25` (the truth) and `gloss="auto"`, and on the wood table with thesis 5.4's joint albedo
 (`hj.solvers.solve_albedo_illumination` on the default solve's `A` and photo). The figure is the map's tone-mapped SSIM
 against the panorama on the grid (`hj.metrics.env_errors`), and the fit's relative residual (what
-the texture warning reads). Renders are kept in `DIR/renders/` and reused.
+the texture warning reads), and the glare check's glossy-to-matte residual ratio; `real_tables.png`
+shows the photos, the plates' albedo and the maps. Renders are kept in `DIR/renders/` and reused.
 """
 
 import argparse
@@ -68,15 +69,39 @@ def renderer(spp: int):
                 lambda scene, cam, pano: hj.reference_render(scene, cam, pano, samples=2 * spp, pixel_samples=4))
 
 
+def sheet(path, maps, truths, photos, cases):
+    """One row per sky and table: the photo, the plate's albedo (where taken), the default map, the map
+    with the plate, with the glossy model (satin), and the truth on the grid."""
+    score = {(c["sky"], c["table"], c["solve"]): c["env_errors"]["ssim_tm"] for c in cases if "env_errors" in c}
+    panels, columns = [], 6
+    for sky, truth in truths.items():
+        white = float(np.percentile(truth[: truth.shape[0] // 2], 99))
+        for name in ("plain", "wood", "satin"):
+            if (sky, name, "default") not in maps:
+                continue
+            row = [(f"{sky}, {name} table", photos[(sky, name, "photo")]),
+                   ("plate's albedo (relative)", maps.get((sky, name, "plate albedo"), np.full((2, 2), np.nan)),
+                    "radiance", 2.0)]
+            for solve in ("default", "plate", "gloss 0.25"):
+                env = maps.get((sky, name, solve))
+                row.append((f"{solve}: tm-SSIM {score[(sky, name, solve)]:.3f}" if env is not None else f"({solve})",
+                            env if env is not None else np.full((2, 4), np.nan), "radiance", white))
+            row.append(("truth", truth, "radiance", white))
+            panels += row
+    hj.io.contact_sheet(path, panels, height=160, columns=columns)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/bench_tables"))
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--hdri", type=Path, default=ROOT / "data_fixtures" / "hdri", help="folder of .hdr panoramas")
-    parser.add_argument("--skies", nargs="+", default=["immenstadter_horn", "lebombo"])
+    parser.add_argument("--skies", nargs="+", help="panoramas' names (default immenstadter_horn lebombo; "
+                                                    "--quick: the first)")
     parser.add_argument("--tables", nargs="+", default=["plain", "wood", "satin"], choices=["plain", "wood", "satin"])
     parser.add_argument("--spp", type=int, default=None, help="Mitsuba samples per pixel (default 128; quick 32)")
     args = parser.parse_args(argv)
+    args.skies = args.skies or (["immenstadter_horn"] if args.quick else ["immenstadter_horn", "lebombo"])
     hj.enable_compilation_cache()
     out = args.out
     (out / "renders").mkdir(parents=True, exist_ok=True)
@@ -84,6 +109,9 @@ def main(argv=None):
     width, grid = (64, hj.EnvGrid(16, 32)) if args.quick else (128, hj.EnvGrid(32, 64))
     spp = args.spp or (32 if args.quick else 128)
     how, render = renderer(spp)
+    if how.startswith("reference") and "satin" in args.tables:
+        print("the reference renderer is diffuse: the satin table needs Mitsuba (pip install mitsuba); left out")
+        args.tables = [t for t in args.tables if t != "satin"]
     f = W / (2 * np.tan(np.radians(FOV) / 2))
     intr = hj.photo.Intrinsics(np.array([[f, 0, W / 2 - 0.5], [0, f, H / 2 - 0.5], [0, 0, 1.0]]), np.zeros(5), W, H)
     camera = hj.Camera.look_at(EYE, TARGET, (0, 1, 0), fov=FOV, width=W, height=H)
@@ -91,13 +119,14 @@ def main(argv=None):
     obj = hj.photo.place(base, TRUE_PLACE)
     textures = {"plain": ALBEDO, "wood": wood(1024 if args.quick else 4096), "satin": ALBEDO}
     results = dict(renderer=how, photo_size=[W, H], solve_width=width, grid=list(grid.shape), cases=[])
+    maps, truths, photos_shown = {}, {}, {}
     table = Table()
     table.append(("sky", "table", "solve", "tm-SSIM", "residual", "glossy/matte", "roughness", "warns", "seconds"))
     for sky in args.skies:
         path = args.hdri / f"{sky}.hdr"
         path = path if path.exists() else args.hdri / f"{sky}_1k.hdr"
         pano = hj.io.read_hdr(path)
-        truth = grid.downsample(pano)
+        truth = truths[sky] = grid.downsample(pano)
         for name in args.tables:
             photos = {}
             for kind, mesh in (("photo", obj), ("plate", None)):
@@ -106,7 +135,7 @@ def main(argv=None):
                     scene = hj.photo.capture_test_scene(BOARD, mesh, table=textures[name], table_size=TABLE_SIZE,
                                                         roughness=SATIN if name == "satin" else None)
                     hj.io.write_exr(file, render(scene, camera, pano))
-                photos[kind] = hj.io.read_exr(file)
+                photos[kind] = photos_shown[(sky, name, kind)] = hj.io.read_exr(file)
             solves = {"default": {}, "plate": dict(plate=photos["plate"])}
             if name != "wood":
                 solves.update({"gloss 0.25": dict(gloss=SATIN), "gloss auto": dict(gloss="auto")})
@@ -120,6 +149,9 @@ def main(argv=None):
                 said = "; ".join(sorted({("plate" if "clean plate" in str(w.message) else "gloss")
                                          for w in caught if "--plate" in str(w.message) or "--gloss" in str(w.message)}))
                 errors = hj.metrics.env_errors(rec.env, truth)
+                maps[(sky, name, solve)] = rec.env
+                if solve == "plate":
+                    maps[(sky, name, "plate albedo")] = np.where(rec.plate.valid[..., None], rec.plate.albedo, np.nan)
                 results["cases"].append(dict(sky=sky, table=name, solve=solve, env_errors=errors, residual=rec.residual,
                                              glare=rec.glare, roughness=rec.roughness, warnings=said, seconds=seconds))
                 if name == "wood" and solve == "default":  # thesis 5.4's joint albedo from the one photo
@@ -135,6 +167,7 @@ def main(argv=None):
                               "-" if rec.glare is None else f"{rec.glare:.2f}",
                               str(rec.roughness), said or "-", f"{seconds:.1f}"))
     table.print_all()
+    sheet(out / "real_tables.png", maps, truths, photos_shown, results["cases"])
     (out / "results.json").write_text(json.dumps(results, indent=2))
     print(f"photos: {how}; wrote {out}/results.json")
     return results

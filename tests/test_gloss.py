@@ -104,3 +104,7 @@ ior = 1.4
         hj.transport_operator(glossy, camera, hj.EnvGrid(4, 8))
     with pytest.raises(ValueError, match="bounces=0"):
         hj.transport_matrix(glossy, camera, hj.EnvGrid(4, 8), bounces=1)
+    with pytest.raises(ValueError, match="reference renderer is diffuse"):
+        hj.reference_render(glossy, camera, np.ones((8, 16)))
+    with pytest.raises(ValueError, match="sigmoid-shadow transport models diffuse"):
+        hj.shadows.SoftTransport.from_scene(glossy, camera, hj.EnvGrid(4, 8))

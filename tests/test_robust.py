@@ -295,15 +295,16 @@ def test_refit_step_is_the_joint_gauss_newton_step(problem):
 
 
 def test_refit_gram_stays_accurate_with_weak_regularization(problem, getkey):
-    """At 0.1% of the default weights B is ill-conditioned (cond > 1e6). A pose derivative lies mostly in
-    the range of A (a moved shadow is mostly a changed map), so K^T B^-1 K nearly cancels J^T J: formed
-    directly in float32 the difference lost two digits (2e-2 relative); the QR form keeps it to 1e-6."""
+    """At 0.2% of the default weights B is ill-conditioned (cond 1.7e7 > 1e6). A pose derivative lies mostly
+    in the range of A (a moved shadow is mostly a changed map), so K^T B^-1 K nearly cancels J^T J: formed
+    directly in float32 the difference lost two digits (2e-2 relative); the QR form keeps it to 1e-6. (At
+    0.1%, cond about 3e7, B's float32 Cholesky factorization itself fails on some CPUs: AMD EPYC here.)"""
     setup, _, _, _, _ = problem
     fine = hj.EnvGrid(8, 16)
     model = SceneModel.from_scene(setup.scene, setup.camera, fine, margin=1, tolerance=1e-10)
     T = _embree(setup, model, SceneParams.zeros(), samples=4)
-    op = hj.solvers.IlluminationOperator.build(T, smooth=1e-3 * hj.solvers.DEFAULT_SMOOTH,
-                                               ridge=1e-3 * hj.solvers.DEFAULT_RIDGE)
+    op = hj.solvers.IlluminationOperator.build(T, smooth=2e-3 * hj.solvers.DEFAULT_SMOOTH,
+                                               ridge=2e-3 * hj.solvers.DEFAULT_RIDGE)
     A = np.asarray(T.A, np.float64)
     x = np.abs(np.asarray(jax.random.normal(getkey(), (fine.size, 3)))) * (np.arange(fine.size)[:, None] % 3 != 0)
     Z = np.asarray(jax.random.normal(getkey(), (fine.size, 3, 3)), np.float64)

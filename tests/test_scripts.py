@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # Scripts whose --quick run takes half a minute or more on 2 cores: run with -m slow (CI runs them).
 LONG = {"around_the_corner.py", "uncertain_scene.py", "bench_shadows.py", "bench_corners.py", "bench_weight_choice.py",
         "real_capture.py", "bench_scale.py", "distributed_solve.py", "design_occluder.py", "ablation.py",
-        "bench_compile.py", "bench_robustness.py", "train_corner_networks.py"}
+        "bench_compile.py", "bench_robustness.py", "train_corner_networks.py", "bench_tables.py"}
 
 
 def scripts(folder):

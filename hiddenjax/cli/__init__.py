@@ -11,7 +11,8 @@
     hiddenjax board -o board.png [--pdf board.pdf] [--squares C R] [--square M] [--marker M] [--dpi D]
     hiddenjax calibrate board.toml photo... -o camera.toml [--sheet check.png]
     hiddenjax reconstruct board.toml photo... --object MESH --at X Z [--yaw DEG] [--size M]
-                          (--intrinsics camera.toml | --fov DEG) [--times T...] -o out/
+                          (--intrinsics camera.toml | --fov DEG) [--times T...] [--plate PHOTO...]
+                          [--gloss ROUGHNESS|auto] -o out/
     hiddenjax video A.npz clip.mp4 -o maps/ [--background median|first] [--video maps.mp4]
     hiddenjax corner (clip.mp4 | folder/ | frame.png...) -o out/ [--corner corner.toml] [--class L|T|table]
                      [--setting fixed-lamp|random-lamp] [--background median|first|IMAGE] [--window N]

@@ -134,8 +134,10 @@ def reconstruct(args) -> dict:
     io.write_text(out / "results.json", json.dumps(results, indent=2))
     moved = "" if r is None else (f"; object refined to x {p.x:.4f} m, z {p.z:.4f} m, yaw {p.yaw:.1f} deg "
                                   f"(outline overlap {r.initial_iou:.2f} -> {r.iou:.2f})")
+    table = "" if rec.plate is None else f" (albedo from the plate, moved {rec.plate.shift_px:.1f} px)"
+    table += "" if rec.roughness is None else f" (glossy, roughness {rec.roughness:g})"
     print(f"wrote {out}/: board found ({rec.pose.corners} corners, {rec.pose.reprojection_error:.2f} px){moved}; "
-          f"{int(rec.mask.sum())} table pixels observed, {grid.height}x{grid.width} map in {seconds:.1f} s; "
+          f"{int(rec.mask.sum())} table pixels observed{table}, {grid.height}x{grid.width} map in {seconds:.1f} s; "
           f"check {out}/check.png")
     return results
 

@@ -53,8 +53,8 @@ def fresnel(cos_i, eta):
     cos_i = np.clip(cos_i, 0.0, 1.0)
     sin_t2 = (1 - cos_i**2) / eta**2
     cos_t = np.sqrt(np.maximum(1 - sin_t2, 0.0))
-    rs = (cos_i - eta * cos_t) / np.maximum(cos_i + eta * cos_t, 1e-300)
-    rp = (eta * cos_i - cos_t) / np.maximum(eta * cos_i + cos_t, 1e-300)
+    rs = (cos_i - eta * cos_t) / np.maximum(cos_i + eta * cos_t, 1e-30)
+    rp = (eta * cos_i - cos_t) / np.maximum(eta * cos_i + cos_t, 1e-30)
     return np.where(sin_t2 >= 1, 1.0, 0.5 * (rs**2 + rp**2))
 
 

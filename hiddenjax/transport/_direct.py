@@ -105,21 +105,30 @@ class DirectLighting:
                     out[rows[keep]] = lobe[keep]
         return out
 
+    def _cell_points(self, k: int) -> np.ndarray:
+        """`(N, k^2, 3)` float32: the midpoints of a `k x k` split of every cell (uniform in solid angle)."""
+        key = ("cell points", k)
+        if key not in self._horizons:
+            u = (np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), -1).reshape(-1, 2) + 0.5) / k
+            cells = np.arange(self.grid.size)[:, None]
+            self._horizons[key] = self.grid.sample_directions(cells, np.broadcast_to(u, (self.grid.size, k * k, 2)))
+            self._horizons[key] = self._horizons[key].astype(np.float32)
+        return self._horizons[key]
+
     def _lobe_block(self, n, v, g) -> np.ndarray:
         """The unoccluded lobe of a few points: midpoints everywhere, `k x k` points per cell where
         the half vector of the cell's centre is within `tan theta_h < 4 alpha` of the normal."""
         alpha, eta = g.roughness, g.ior
         k = int(np.clip(np.ceil(0.4 / alpha), 2, 8))
-        cos_v = np.einsum("mc,mc->m", n, v)
-        w = self.centres[None, :, :]  # (1, N, 3)
+        cos_v = _dot(n, v)
+        w = self.centres32[None, :, :]  # (1, N, 3)
         value, tan_h = _lobe_at(n[:, None, :], v[:, None, :], cos_v[:, None], w, alpha, eta)
         out = value * self.omega[None, :]
         peak = tan_h < 4 * alpha
         m, j = np.nonzero(peak)
         if len(m):
-            u = (np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), -1).reshape(-1, 2) + 0.5) / k
-            fine = self.grid.sample_directions(j[:, None], np.broadcast_to(u, (len(j), k * k, 2)))  # (P, k^2, 3)
-            value, _ = _lobe_at(n[m][:, None, :], v[m][:, None, :], cos_v[m][:, None], fine, alpha, eta)
+            value, _ = _lobe_at(n[m][:, None, :], v[m][:, None, :], cos_v[m][:, None], self._cell_points(k)[j],
+                                alpha, eta)
             out[m, j] = value.mean(axis=1) * self.omega[j]
         return out
 
@@ -156,10 +165,14 @@ class DirectLighting:
         glossy = self.glossy[surface] if view is not None else np.zeros(M, bool)
         # Horizon classes and the closed-form term depend on the normal (and a glossy surface's
         # material) only: planar receivers share a handful of normals, so evaluate them once per key.
-        material = np.where(glossy, surface + 1, 0)
-        keys, which = np.unique(np.concatenate([n, material[:, None]], axis=1), axis=0, return_inverse=True)
+        if np.any(glossy):
+            material = np.where(glossy, surface + 1, 0).astype(n.dtype)
+            keys, which = np.unique(np.concatenate([n, material[:, None]], axis=1), axis=0, return_inverse=True)
+            normals = np.ascontiguousarray(keys[:, :3])
+        else:  # diffuse points only: keyed by their normals alone, as before glossy surfaces existed
+            normals, which = np.unique(n, axis=0, return_inverse=True)
+            keys = np.zeros((len(normals), 4))
         which = which.reshape(-1)
-        normals = np.ascontiguousarray(keys[:, :3])
         up, cross, closed = self._horizon(normals)
         if np.any(keys[:, 3] > 0):
             closed = closed.copy()
@@ -258,13 +271,20 @@ class SplitRows(NamedTuple):
     lobe_delta: np.ndarray | None = None  # (nnz,) the glossy lobe's occluded part (with a view)
 
 
+def _dot(a, b):
+    """`a . b` over the last axis of size 3, as three products (a reduction over 3 is slow in numpy)."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
 def _lobe_at(n, v, cos_v, w, alpha, eta):
-    """`(f_s(v, w) max(0, n.w), tan theta_h)` for broadcastable normals, views, `cos_v` and
-    directions `w (..., 3)` (`scene._gloss.specular`)."""
-    cos_w = np.sum(n * w, axis=-1)
+    """`(f_s(v, w) max(0, n.w), tan theta_h)` in float32 for broadcastable normals, views, `cos_v` and
+    directions `w (..., 3)` (`scene._gloss.specular`); `h = (v + w) / |v + w|` enters through its dot
+    products only."""
+    f32 = np.float32
+    n, v, w, cos_v = (np.asarray(a, dtype=f32) for a in (n, v, w, cos_v))
     h = v + w
-    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
-    cos_h = np.sum(n * h, axis=-1)
-    value = specular(cos_v, cos_w, cos_h, np.sum(v * h, axis=-1), alpha, eta)
-    tan_h = np.sqrt(np.maximum(1 - cos_h**2, 0.0)) / np.maximum(cos_h, 1e-12)
+    inv = 1 / np.sqrt(np.maximum(_dot(h, h), f32(1e-24)))
+    cos_h = _dot(n, h) * inv
+    value = specular(cos_v, _dot(n, w), cos_h, _dot(v, h) * inv, f32(alpha), f32(eta))
+    tan_h = np.sqrt(np.maximum(1 - cos_h * cos_h, f32(0))) / np.maximum(cos_h, f32(1e-12))
     return value, tan_h
