@@ -143,4 +143,5 @@ def check_plate_without_object(photo, plate: Plate, outline: np.ndarray, ring: n
         float(np.median(y[around] / np.maximum(p[around], 1e-30))), 1e-30)
     if 1 / SAME_OBJECT_RATIO < ratio < SAME_OBJECT_RATIO:
         raise ValueError("the clean plate shows the object where the photo does (their ratio is "
-                         f"{ratio:.2f} on the object, as on the table around it); take the plate with the object removed")
+                         f"{ratio:.2f} on the object, as on the table around it); take the plate with the object "
+                         "removed")
