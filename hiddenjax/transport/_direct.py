@@ -176,12 +176,15 @@ class DirectLighting:
         up, cross, closed = self._horizon(normals)
         if np.any(keys[:, 3] > 0):
             closed = closed.copy()
+            few = len(keys) <= 4  # planar receivers: cached as `_horizon` does; a curved one's are not
             for key in np.nonzero(keys[:, 3] > 0)[0]:
                 cache = (keys[key].tobytes(), "gloss")
-                if cache not in self._horizons:
-                    self._horizons[cache] = self._weighted_closed(normals[key], self.gloss[int(keys[key, 3]) - 1],
-                                                                  up[key])
-                closed[key] = self._horizons[cache]
+                value = self._horizons.get(cache) if few else None
+                if value is None:
+                    value = self._weighted_closed(normals[key], self.gloss[int(keys[key, 3]) - 1], up[key])
+                    if few and len(self._horizons) < 64:
+                        self._horizons[cache] = value
+                closed[key] = value
         above, straddle = up[which], cross[which]
 
         cones = []  # (active (M,), axis (M,3), cos_alpha (M,)) per occluder
