@@ -8,7 +8,7 @@ import numpy as np
 
 from .. import io
 from .. import photo as _photo
-from ..scene import EnvGrid, check_gloss
+from ..scene import EnvGrid
 from ..solvers import DEFAULT_PRIOR, DEFAULT_RIDGE
 from ._common import IMAGE_HELP, PRIORS, _output_folder, _read_capture, _write_cues, photo_options
 
@@ -81,18 +81,14 @@ def reconstruct(args) -> dict:
     if args.plate_times and not args.plate:
         raise ValueError("--plate-times are the exposure times of a clean plate's bracket; give the plate (--plate)")
     plate = _read_capture(args.plate, args.plate_times, args.srgb, args.response) if args.plate else None
-    gloss = None
-    if args.gloss is not None:
-        if args.gloss == "auto":
-            gloss = "auto"
-        else:
-            try:
-                gloss = float(args.gloss)
-            except ValueError:
-                raise ValueError(f"--gloss takes the table's roughness (GGX alpha, 0.05-1) or 'auto', "
-                                 f"got {args.gloss!r}") from None
-        check_gloss(0.25 if gloss == "auto" else gloss, args.ior)
-    elif args.ior != 1.5:
+    gloss = args.gloss  # a roughness or 'auto', checked by the library before any work
+    if gloss not in (None, "auto"):
+        try:
+            gloss = float(gloss)
+        except ValueError:
+            raise ValueError(f"--gloss takes the table's roughness (GGX alpha, 0.05-1) or 'auto', "
+                             f"got {gloss!r}") from None
+    elif gloss is None and args.ior != 1.5:
         raise ValueError("--ior is the glossy table's index of refraction: give --gloss too")
     grid = EnvGrid(*args.grid)
     t0 = time.perf_counter()
@@ -144,7 +140,7 @@ def reconstruct(args) -> dict:
 
 def _capture_sheet(b, radiance, intr, rec) -> list:
     """Panels that show at once whether the calibration and placement are right."""
-    drawn = _photo.draw_detection(radiance, _photo.detect(b, radiance), rec.pose, b)
+    drawn = _photo.draw_detection(radiance, rec.pose.detection, rec.pose, b)
     outline = _photo.silhouette(rec.scene[1].mesh, rec.refine_camera)  # the object where it was placed
     outline = cv2.resize((outline > 0.5).astype(np.uint8), (drawn.shape[1], drawn.shape[0]), interpolation=cv2.INTER_NEAREST)
     contours, _ = cv2.findContours(outline, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)

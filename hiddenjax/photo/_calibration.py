@@ -100,7 +100,7 @@ class BoardPose(NamedTuple):
     """The board's pose in one photo, as a world -> camera transform `x_cam = R x_world + t` (OpenCV axes).
 
     `reprojection_error` is the RMS distance in pixels between the found corners and the corners
-    projected with this pose; `corners` how many were found.
+    projected with this pose; `corners` how many were found; `detection` the corners themselves.
     """
 
     R: np.ndarray
@@ -108,6 +108,7 @@ class BoardPose(NamedTuple):
     intrinsics: Intrinsics
     reprojection_error: float
     corners: int
+    detection: "Detection | None" = None
 
     @property
     def origin(self) -> np.ndarray:
@@ -194,6 +195,10 @@ def board_pose(board: Board, image, intrinsics: Intrinsics, min_corners: int = 6
     `R, t` map world points (board centre at the origin, +y up) to OpenCV camera coordinates.
     """
     d = detect(board, image)
+    return _pose_from_detection(board, d, intrinsics, min_corners)
+
+
+def _pose_from_detection(board: Board, d: "Detection", intrinsics: Intrinsics, min_corners: int) -> BoardPose:
     if d.image_size != (intrinsics.width, intrinsics.height):
         raise ValueError(
             f"the photo is {d.image_size[0]}x{d.image_size[1]} but the intrinsics are for "
@@ -219,7 +224,14 @@ def board_pose(board: Board, image, intrinsics: Intrinsics, min_corners: int = 6
     c = np.array([W / 2, D / 2, 0.0])
     R = R_board @ M.T
     t = R_board @ c + tvec.reshape(-1)
-    return BoardPose(R, t, intrinsics, rms, len(d.ids))
+    return BoardPose(R, t, intrinsics, rms, len(d.ids), d)
+
+
+def undistort_photo(radiance, saturated, intrinsics: Intrinsics):
+    """The photo and its saturated mask as the pinhole with the same `K` sees them."""
+    if not np.any(intrinsics.distortion):
+        return radiance, saturated
+    return intrinsics.undistort(radiance), intrinsics.undistort(saturated.astype(np.float32)) > 0
 
 
 def _check_size(a, width, height, what):

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from ._board import Board
-from ._calibration import BoardPose, Intrinsics, board_pose, detect
+from ._calibration import BoardPose, Intrinsics, board_pose, undistort_photo
 
 SAME_VIEW_PX = 0.5  # median move of the board's corners below which the plate is the photo's view
 MAX_SHIFT = 0.1  # of the photo's width: a larger move between the photo and the plate is refused
@@ -56,15 +56,15 @@ def plane_homography(pose: BoardPose) -> np.ndarray:
     return pose.intrinsics.K @ np.stack([pose.R[:, 0], pose.R[:, 2], pose.t], axis=1)
 
 
-def clean_plate(board: Board, plate, photo, intrinsics: Intrinsics, pose: BoardPose, table: np.ndarray,
+def clean_plate(board: Board, plate, intrinsics: Intrinsics, pose: BoardPose, table: np.ndarray,
                 saturated=None) -> Plate:
     """The table's relative albedo from a clean plate (module docstring).
 
     **Arguments:**
     - `plate`: `(H, W[, 3])` linear radiance at the calibration's size (`read_photo`,
       `merge_exposures`), distorted as the camera took it; `saturated` its clipped pixels.
-    - `photo`: the photo with the object, as taken; `pose`: the board in it; `table`: `(H, W)`
-      bool, the photo's table pixels (undistorted view) the albedo is wanted on.
+    - `pose`: the board in the photo with the object (`board_pose`); `table`: `(H, W)` bool, the
+      photo's table pixels (undistorted view) the albedo is wanted on.
 
     The plate is warped into the photo's view (`plane_homography`) when the board's corners moved
     by more than `SAME_VIEW_PX` (median) between the two; else it is used as it is.
@@ -73,7 +73,7 @@ def clean_plate(board: Board, plate, photo, intrinsics: Intrinsics, pose: BoardP
     `MAX_SHIFT` of the photo's width or does not cover the table, or that is saturated on more than
     `MAX_SATURATED` of the table.
     """
-    plate = plate_raw = np.asarray(plate, dtype=np.float32)
+    plate = np.asarray(plate, dtype=np.float32)
     H0, W0 = table.shape
     if not table.any():
         raise ValueError("no table pixels to take the plate's albedo on")
@@ -87,12 +87,11 @@ def clean_plate(board: Board, plate, photo, intrinsics: Intrinsics, pose: BoardP
         plate_pose = board_pose(board, plate, intrinsics)
     except ValueError as e:
         raise ValueError(f"the clean plate cannot be registered: {e}") from None
-    plate = intrinsics.undistort(plate) if np.any(intrinsics.distortion) else plate
-    sat = intrinsics.undistort(saturated.astype(np.float32)) > 0 if np.any(intrinsics.distortion) else saturated
+    plate, sat = undistort_photo(plate, saturated, intrinsics)
 
     # Did the camera move? The board's corners found in both photos say so directly (a pose from each
     # would differ by its noise, which the homography magnifies towards the horizon).
-    seen, again = detect(board, photo), detect(board, np.asarray(plate_raw))
+    seen, again = pose.detection, plate_pose.detection
     common, i, k = np.intersect1d(seen.ids, again.ids, return_indices=True)
     moved = float(np.median(np.hypot(*(seen.corners[i] - again.corners[k]).T))) if len(common) else np.inf
     inside = np.ones((H0, W0), bool)

@@ -27,7 +27,7 @@ from ..scene import Camera, EnvGrid, Scene, check_gloss
 from ..solvers import solve_illumination
 from ..transport import TransportMatrix, transport_matrix
 from ._board import Board
-from ._calibration import BoardPose, Intrinsics, board_pose
+from ._calibration import BoardPose, Intrinsics, board_pose, undistort_photo
 from ._capture import (Placement, Refinement, capture_scene, dark_object_mask, object_mesh, place, plain_table,
                        refine_placement, silhouette, table_mask)
 from ._plate import Plate, check_plate_without_object, clean_plate
@@ -65,15 +65,6 @@ class Reconstruction(NamedTuple):
     roughness: float | None = None  # the table's gloss (None: matte)
     glare: float | None = None  # the glare check: a glossy table's residual over the matte one's (None: not run)
     saturated: np.ndarray | None = None  # pixels (solve size) touching a saturated one: left out
-
-
-def undistort_photo(radiance, saturated, intrinsics: Intrinsics):
-    """The photo and its saturated mask as the pinhole with the same `K` sees them."""
-    if not np.any(intrinsics.distortion):
-        return radiance, saturated
-    photo = intrinsics.undistort(radiance)
-    sat = intrinsics.undistort(saturated.astype(np.float32)) > 0
-    return photo, sat
 
 
 def _resize(image, width: int, height: int) -> np.ndarray:
@@ -126,6 +117,10 @@ def reconstruct(
     `"auto"` to choose it from the photo (`choose_roughness`). Without it the table is matte, and
     (with `check_glare`) small solves with a glossy table beside the matte one (`GLARE_CHECK`) warn
     when gloss explains the photo better (a residual below `GLARE_GAIN` of the matte one's)."""
+    if isinstance(gloss, str) and gloss != "auto":
+        raise ValueError(f"gloss must be a roughness (GGX alpha, 0.05-1) or 'auto', got {gloss!r}")
+    if gloss is not None:  # before any work: the roughness, or 'auto' and the index
+        check_gloss(0.25 if gloss == "auto" else gloss, ior)
     radiance = np.asarray(radiance, dtype=np.float32)
     H0, W0 = radiance.shape[:2]
     if (W0, H0) != (intrinsics.width, intrinsics.height):
@@ -163,7 +158,7 @@ def reconstruct(
     if plate is not None:
         full_camera = pose.camera(W0, H0)
         table = table_mask(board, full_camera, margin=0.0)
-        used_plate = clean_plate(board, plate, radiance, intrinsics, pose, table, plate_saturated)
+        used_plate = clean_plate(board, plate, intrinsics, pose, table, plate_saturated)
         outline = silhouette(place(base, placement), full_camera) > 0.5
         radius = max(3, int(0.25 * np.sqrt(max(outline.sum(), 1))))
         grow = lambda m, r: cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
@@ -184,12 +179,8 @@ def reconstruct(
     mask = table_mask(board, camera, saturated=clipped)
     if used_plate is not None:
         mask &= ~_resize_any(table & ~used_plate.valid, width, height)
-    if isinstance(gloss, str):
-        if gloss != "auto":
-            raise ValueError(f"gloss must be a roughness (GGX alpha) or 'auto', got {gloss!r}")
+    if gloss == "auto":
         gloss = choose_roughness(base, placement, pose, photo, saturated, board, albedo, ior, grid, seed).roughness
-    elif gloss is not None:
-        check_gloss(gloss, ior)
     scene = capture_scene(base, placement, albedo=albedo, table_size=TABLE_SIZE, roughness=gloss, ior=ior)
     T = transport_matrix(scene, camera, grid, samples=samples, pixel_samples=pixel_samples, mask=mask, seed=seed,
                          progress=progress)
@@ -221,17 +212,12 @@ def _gloss_keys(surface) -> str:
     return "" if g is None else f"roughness = {g.roughness!r}\nior = {g.ior!r}\n"
 
 
-def _rows_and_fit(T: TransportMatrix, image, env):
+def fit_residual(T: TransportMatrix, image, env) -> float:
+    """`||y - A x|| / ||y||` over the observed pixels (every channel) of `image` and the map `env`."""
     A = np.asarray(T.A, dtype=np.float64)
     y = np.asarray(image, dtype=np.float64).reshape(-1, *np.shape(image)[2:])[np.asarray(T.pixels)]
     x = np.asarray(env, dtype=np.float64).reshape(A.shape[1], *np.shape(env)[2:])
-    return y, A @ x
-
-
-def fit_residual(T: TransportMatrix, image, env) -> float:
-    """`||y - A x|| / ||y||` over the observed pixels (every channel) of `image` and the map `env`."""
-    y, fit = _rows_and_fit(T, image, env)
-    return float(np.linalg.norm(y - fit) / max(float(np.linalg.norm(y)), 1e-30))
+    return float(np.linalg.norm(y - A @ x) / max(float(np.linalg.norm(y)), 1e-30))
 
 
 def scene_toml(rec: Reconstruction, grid: EnvGrid, samples: int, pixel_samples: int, seed: int, albedo: float,

@@ -134,6 +134,11 @@ class Scene:
     def __getitem__(self, k):
         return self.surfaces[k]
 
+    @property
+    def glossy(self) -> bool:
+        """Whether any surface has a glossy lobe (what the diffuse-only renderers refuse)."""
+        return any(s.gloss is not None for s in self.surfaces)
+
     def bounds(self) -> np.ndarray:
         """`(2, 3)` axis-aligned bounds of all surfaces."""
         pts = np.concatenate([s.triangles.reshape(-1, 3) for s in self.surfaces])

@@ -77,7 +77,7 @@ class SoftTransport(eqx.Module):
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         caster = RayCaster(scene)
         S = int(pixel_samples)
-        if any(s.gloss is not None for s in scene):
+        if scene.glossy:
             raise ValueError("the sigmoid-shadow transport models diffuse surfaces; a glossy surface's lobe "
                              "needs hj.transport_matrix (Embree)")
         hits, directions = primary_hits(caster, camera, S, seed)

@@ -122,7 +122,7 @@ def _check_build_args(scene, camera, samples, pixel_samples, bounces=0, bounce_s
                              f"(defaults: samples=16, pixel_samples=4, bounces=0); use at most {limit}")
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    if bounces and any(s.gloss is not None for s in scene):
+    if bounces and scene.glossy:
         raise ValueError("interreflections (bounces > 0) are modelled between diffuse surfaces; with a glossy "
                          "surface use bounces=0")
     if not np.all(np.isfinite(np.asarray(camera.rotation))) or not np.all(np.isfinite(np.asarray(camera.intrinsics))):

@@ -165,16 +165,16 @@ class DirectLighting:
         glossy = self.glossy[surface] if view is not None else np.zeros(M, bool)
         # Horizon classes and the closed-form term depend on the normal (and a glossy surface's
         # material) only: planar receivers share a handful of normals, so evaluate them once per key.
-        if np.any(glossy):
+        if not np.any(glossy):  # diffuse points only: keyed by their normals alone
+            normals, which = np.unique(n, axis=0, return_inverse=True)
+            which = which.reshape(-1)
+            up, cross, closed = self._horizon(normals)
+        else:
             material = np.where(glossy, surface + 1, 0).astype(n.dtype)
             keys, which = np.unique(np.concatenate([n, material[:, None]], axis=1), axis=0, return_inverse=True)
+            which = which.reshape(-1)
             normals = np.ascontiguousarray(keys[:, :3])
-        else:  # diffuse points only: keyed by their normals alone, as before glossy surfaces existed
-            normals, which = np.unique(n, axis=0, return_inverse=True)
-            keys = np.zeros((len(normals), 4))
-        which = which.reshape(-1)
-        up, cross, closed = self._horizon(normals)
-        if np.any(keys[:, 3] > 0):
+            up, cross, closed = self._horizon(normals)
             closed = closed.copy()
             few = len(keys) <= 4  # planar receivers: cached as `_horizon` does; a curved one's are not
             for key in np.nonzero(keys[:, 3] > 0)[0]:

@@ -388,7 +388,7 @@ def transport_operator(
         raise ValueError(f"products must be one of {PRODUCTS}, got {products!r}")
     budget = parse_memory(memory)
     _check_build_args(scene, camera, samples, pixel_samples, seed=seed)
-    if any(s.gloss is not None for s in scene):
+    if scene.glossy:
         raise ValueError("the matrix-free operator splits A into a part per surface normal, which a glossy "
                          "surface's view-dependent lobe does not have; build the dense hj.transport_matrix")
     threads = max(1, threads if threads is not None else (os.cpu_count() or 1))

@@ -34,7 +34,7 @@ def reference_render(
     **Returns:** `(H, W)` or `(H, W, C)` float32 linear radiance. Rays that miss every surface
     see the panorama itself, as a photograph would.
     """
-    if any(s.gloss is not None for s in scene):
+    if scene.glossy:
         raise ValueError("the reference renderer is diffuse: render a scene with a glossy surface with Mitsuba "
                          "(hiddenjax.transport._mitsuba.render_panorama_mitsuba) or through hj.transport_matrix")
     pano = np.asarray(panorama, dtype=np.float64)
