@@ -15,11 +15,10 @@ LONG = {"around_the_corner.py", "uncertain_scene.py", "bench_shadows.py", "bench
         "bench_compile.py", "bench_robustness.py", "train_corner_networks.py", "bench_tables.py"}
 
 
-def scripts(folder):
-    return [pytest.param(p, marks=[pytest.mark.slow] * (p.name in LONG),
-                         id=f"{folder}/{p.name}")
-            for p in sorted((ROOT / folder).glob("*.py"))
-            if not p.name.startswith("_")]  # _report.py is a shared module, not a script
+def scripts(folder, long):
+    """The folder's scripts in LONG (`long=True`) or not in it."""
+    return [p for p in sorted((ROOT / folder).glob("*.py"))
+            if not p.name.startswith("_") and (p.name in LONG) == long]  # _report.py is a shared module
 
 
 def run_quick(script, tmp_path):
@@ -34,18 +33,33 @@ def run_quick(script, tmp_path):
     assert list(tmp_path.glob("*.png")), "no picture written"
 
 
-# One class per folder: `--dist loadscope` hands each class to a worker of its own (the scripts run in
+# `--dist loadscope` hands each class to one worker. The quick scripts: one class per folder (they run in
 # their own processes and share nothing with each other's tests, so they need not queue on one worker).
+# The long ones: one class each, so that the slow run spreads them over the workers (in one class they
+# queued on one worker for 25 of the slow run's 28 minutes, 2 cores).
 class TestExamples:
-    @pytest.mark.parametrize("script", scripts("examples"))
+    @pytest.mark.parametrize("script", scripts("examples", long=False), ids=lambda p: f"examples/{p.name}")
     def test_script_runs_quick(self, script, tmp_path):
         run_quick(script, tmp_path)
 
 
 class TestBenchmarks:
-    @pytest.mark.parametrize("script", scripts("benchmarks"))
+    @pytest.mark.parametrize("script", scripts("benchmarks", long=False), ids=lambda p: f"benchmarks/{p.name}")
     def test_script_runs_quick(self, script, tmp_path):
         run_quick(script, tmp_path)
+
+
+def _long_script_test(script):
+    @pytest.mark.slow
+    class TestLongScript:
+        def test_script_runs_quick(self, tmp_path):
+            run_quick(script, tmp_path)
+    TestLongScript.__name__ = TestLongScript.__qualname__ = f"TestLong_{script.parent.name}_{script.stem}"
+    return TestLongScript
+
+
+for _script in scripts("examples", long=True) + scripts("benchmarks", long=True):
+    globals()[f"TestLong_{_script.parent.name}_{_script.stem}"] = _long_script_test(_script)
 
 
 @pytest.mark.slow
