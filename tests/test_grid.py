@@ -72,6 +72,20 @@ def test_cosine_range_brackets_brute_force():
     c = np.einsum("mc,nsc->mns", n, w)
     assert np.all(lo <= c.min(-1) + 1e-12) and np.all(hi >= c.max(-1) - 1e-12)
     assert np.max(c.min(-1) - lo) < 2e-3 and np.max(hi - c.max(-1)) < 2e-3  # tight, not just safe
+    j = rng.integers(0, grid.size, len(n))  # one pixel per normal: the same values
+    lo_j, hi_j = grid.cosine_range(n, j)
+    assert np.array_equal(lo_j, lo[np.arange(len(n)), j]) and np.array_equal(hi_j, hi[np.arange(len(n)), j])
+
+
+def test_horizon_classes_equal_the_exact_cosine_range():
+    """The angular-radius shortcut decides most pairs; every class must equal the exact range's."""
+    grid = hj.EnvGrid(32, 64)
+    rng = np.random.default_rng(2)
+    n = rng.normal(size=(300, 3))
+    n = np.concatenate([n / np.linalg.norm(n, axis=1, keepdims=True), np.eye(3), -np.eye(3)])
+    lo, hi = grid.cosine_range(n)
+    above, straddle = grid.horizon_classes(n)
+    assert np.array_equal(above, lo >= 0) and np.array_equal(straddle, (lo < 0) & (hi > 0))
 
 
 def test_difference_operator_zero_on_constant_and_wraps():

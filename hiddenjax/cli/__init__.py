@@ -13,6 +13,8 @@
     hiddenjax reconstruct board.toml photo... --object MESH --at X Z [--yaw DEG] [--size M]
                           (--intrinsics camera.toml | --fov DEG) [--times T...] [--plate PHOTO...]
                           [--gloss ROUGHNESS|auto] -o out/
+    hiddenjax probe photo... --mask MASK (--sphere | --object MESH --intrinsics camera.toml) [--linear]
+                    [--times T...] -o out/
     hiddenjax video A.npz clip.mp4 -o maps/ [--background median|first] [--video maps.mp4]
     hiddenjax corner (clip.mp4 | folder/ | frame.png...) -o out/ [--corner corner.toml] [--class L|T|table]
                      [--setting fixed-lamp|random-lamp] [--background median|first|IMAGE] [--window N]
@@ -33,11 +35,11 @@ import warnings
 
 from .. import __version__
 from .._compilation_cache import enable_compilation_cache
-from . import _board, _corner, _cues, _demo, _design, _lights, _reconstruct, _render, _solve, _transport, _video
+from . import _board, _corner, _cues, _demo, _design, _lights, _probe, _reconstruct, _render, _solve, _transport, _video
 from ._common import IMAGE_HELP, _Parser, _runtime_message
 from ._demo import demo as demo
 
-COMMANDS = (_transport, _solve, _render, _cues, _lights, _demo, _design, _board, _reconstruct, _video, _corner)
+COMMANDS = (_transport, _solve, _render, _cues, _lights, _demo, _design, _board, _reconstruct, _probe, _video, _corner)
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -79,9 +79,22 @@ def photo_options(p) -> None:
     p.add_argument("--srgb", action="store_true", help="linearize 8/16-bit images from sRGB")
 
 
+def capture_options(p) -> None:
+    """How the commands that read a capture (`read_photo`) decode 8-bit files: sRGB with a warning by default."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--srgb", action="store_true", help="8/16-bit photos are sRGB-encoded (default for 8-bit, with a "
+                                                       "warning; 16-bit is taken as linear)")
+    g.add_argument("--linear", action="store_true", help="8-bit photos hold linear values (no sRGB decoding)")
+
+
+def capture_srgb(args):
+    """`read_photo`'s `srgb`: True (--srgb), False (--linear) or None (8-bit as sRGB, with a warning)."""
+    return True if args.srgb else False if args.linear else None
+
+
 def _read_capture(paths, times, srgb, response):
-    """One photo, or a bracket merged to linear radiance (times from --times or the files' EXIF)."""
-    srgb = True if srgb else None
+    """One photo, or a bracket merged to linear radiance (times from --times or the files' EXIF);
+    `srgb` as `capture_srgb` gives it."""
     if len(paths) == 1:
         if times:
             raise ValueError("--times is for a bracket of several photos; drop it for one photo")
@@ -95,6 +108,8 @@ def _read_capture(paths, times, srgb, response):
             raise ValueError("the bracket's exposure times are not in the files' EXIF; give them with --times")
     images, bits = zip(*(io.read_stored(p) for p in paths))
     images = [a.astype(np.float32) for a in images]  # as io.read_image returns them
+    if response is None and srgb is not None:
+        response = "srgb" if srgb else "linear"
     if response is None:
         eight_bit = [p for p, b in zip(paths, bits) if b == 8]
         response = "srgb" if eight_bit else "linear"

@@ -10,7 +10,7 @@ from .. import io
 from .. import photo as _photo
 from ..scene import EnvGrid
 from ..solvers import DEFAULT_PRIOR, DEFAULT_RIDGE
-from ._common import IMAGE_HELP, PRIORS, _output_folder, _read_capture, _write_cues, photo_options
+from ._common import IMAGE_HELP, PRIORS, _output_folder, _read_capture, _write_cues, capture_options, capture_srgb
 
 
 def add_parsers(sub) -> None:
@@ -56,7 +56,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("-o", "--output", required=True, help="output folder (created)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    photo_options(p)
+    capture_options(p)
     p.set_defaults(run=reconstruct)
 
 
@@ -64,7 +64,7 @@ def reconstruct(args) -> dict:
     """`hiddenjax reconstruct`: one capture (a photo or a bracket) to the environment map."""
     out = _output_folder(args.output)
     b = _photo.Board.load(args.board)
-    photo = _read_capture(args.photos, args.times, args.srgb, args.response)
+    photo = _read_capture(args.photos, args.times, capture_srgb(args), args.response)
     H0, W0 = photo.radiance.shape[:2]
     if args.intrinsics is not None:
         intr = _photo.Intrinsics.load(args.intrinsics)
@@ -80,7 +80,7 @@ def reconstruct(args) -> dict:
         mask = io.read_image(args.object_mask) > 0.5
     if args.plate_times and not args.plate:
         raise ValueError("--plate-times are the exposure times of a clean plate's bracket; give the plate (--plate)")
-    plate = _read_capture(args.plate, args.plate_times, args.srgb, args.response) if args.plate else None
+    plate = _read_capture(args.plate, args.plate_times, capture_srgb(args), args.response) if args.plate else None
     gloss = args.gloss  # a roughness or 'auto', checked by the library before any work
     if gloss not in (None, "auto"):
         try:

@@ -2,7 +2,8 @@
 
 The path from a camera to a map: `hiddenjax board` (print it), photograph the board from several
 angles (`calibrate`), photograph the object standing on it (`board_pose` -> `BoardPose.camera`),
-read the photo as linear radiance (`read_photo`, `merge_exposures`).
+read the photo as linear radiance (`read_photo`, `merge_exposures`). An object alone as a light
+probe: `Probe.sphere(mask)` or `Probe.mesh(...)`, then `probe.solve(photo)`.
 """
 
 from ._board import Board as Board
@@ -32,6 +33,9 @@ from ._capture import plain_table as plain_table
 from ._capture import refine_placement as refine_placement
 from ._capture import silhouette as silhouette
 from ._capture import table_mask as table_mask
+from ._probe import Probe as Probe
+from ._probe import ProbeResult as ProbeResult
+from ._probe import fit_sphere as fit_sphere
 from ._plate import Plate as Plate
 from ._plate import clean_plate as clean_plate
 from ._reconstruct import GLARE_GAIN as GLARE_GAIN

@@ -77,8 +77,9 @@ def read_photo(path, exposure: float | None = None, srgb: bool | None = None, sa
         stored = stored.astype(np.float32)
         if bits == 8 and srgb is None:
             warnings.warn(
-                f"{path.name}: an 8-bit photo, linearized through the sRGB curve; a camera's tone curve "
-                f"differs, so prefer a raw capture developed to 16-bit linear TIFF, or EXR",
+                f"{path.name}: an 8-bit photo, assumed sRGB-encoded and linearized through the sRGB curve; if its "
+                f"values are linear, pass --linear (srgb=False). A camera's own tone curve differs from sRGB: "
+                f"prefer a raw capture developed to 16-bit linear TIFF, or EXR",
                 UserWarning, stacklevel=2,
             )
             srgb = True

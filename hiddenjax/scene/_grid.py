@@ -1,5 +1,7 @@
 """The latitude-longitude environment grid (docs/conventions.md, "Environment grid")."""
 
+import functools
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -112,16 +114,24 @@ class EnvGrid(eqx.Module):
         ]
         return np.arccos(np.clip(np.min(cosines, axis=0), -1.0, 1.0))
 
-    def cosine_range(self, normals) -> tuple[np.ndarray, np.ndarray]:
+    def cosine_range(self, normals, pixels=None) -> tuple[np.ndarray, np.ndarray]:
         """Exact `(min, max)` of `n . w` over each pixel, for unit normals `(M, 3)`; each `(M, N)`.
+        With `pixels (M,)` (flat indices), over pixel `pixels[m]` of normal `m` only; each `(M,)`.
 
         A linear function on a lat-long pixel is extreme at a corner, inside an edge (latitude
         edge: `A + B sin phi + C cos phi`; meridian edge: `R cos(theta - theta*)`), or at `-n`/`+n`.
         """
         n = np.asarray(normals, dtype=np.float64)
         t0, t1, p0, p1 = (b.reshape(-1) for b in self.pixel_bounds())
-        values = [n @ direction(t, p).T for t in (t0, t1) for p in (p0, p1)]
-        nx, ny, nz = (n[:, k : k + 1] for k in range(3))
+        if pixels is None:  # every pixel: normals along axis 0, pixels along axis 1
+            cells = np.arange(self.size)
+            nx, ny, nz = (n[:, k : k + 1] for k in range(3))
+        else:
+            cells = np.asarray(pixels).reshape(-1)
+            t0, t1, p0, p1 = t0[cells], t1[cells], p0[cells], p1[cells]
+            nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
+        dot = lambda t, p: (nx * np.sin(p) + nz * -np.cos(p)) * np.sin(t) + ny * np.cos(t)  # n . direction(t, p)
+        values = [dot(t, p) for t in (t0, t1) for p in (p0, p1)]
         inside_phi = lambda phi: np.mod(phi - p0, 2 * np.pi) <= (p1 - p0)
         lo, hi = np.min(values, axis=0), np.max(values, axis=0)
         for t in (t0, t1):  # latitude edges: extremes at phi = atan2(B, C) (+pi)
@@ -142,7 +152,8 @@ class EnvGrid(eqx.Module):
                     hi = np.where(ok, np.maximum(hi, R), hi)
         for sign, target in ((-1.0, "lo"), (1.0, "hi")):  # interior extremes at -n and +n
             i, j = self.direction_to_pixel(sign * n)
-            hit = (i * self.width + j)[:, None] == np.arange(self.size)[None, :]
+            own = (i * self.width + j)
+            hit = own[:, None] == cells[None, :] if pixels is None else own == cells
             if target == "lo":
                 lo = np.where(hit, -1.0, lo)
             else:
@@ -150,6 +161,26 @@ class EnvGrid(eqx.Module):
         # Round-off (cos(pi/2) = 6e-17) must not make a pixel on the horizon straddle it.
         snap = lambda v: np.where(np.abs(v) < 1e-12, 0.0, v)
         return snap(lo), snap(hi)
+
+    def horizon_classes(self, normals) -> tuple[np.ndarray, np.ndarray]:
+        """`(above, straddle)` bool `(M, N)`: pixels wholly above the horizon of each unit normal
+        (`min n.w >= 0`), and those it cuts (`min < 0 < max`), as `cosine_range` has them.
+
+        Every direction of pixel `j` lies within its angular radius `beta_j` of its centre `c_j`, so
+        `n.c_j >= sin(beta_j)` puts the pixel above and `n.c_j <= -sin(beta_j)` below; `cosine_range`
+        decides the pairs in between only (a few percent of them): the same classes at a fraction
+        of the cost.
+        """
+        n = np.asarray(normals, dtype=np.float64)
+        centres, margin = _horizon_constants(self.height, self.width)
+        centre = n @ centres.T
+        above = centre >= margin
+        straddle = np.zeros_like(above)
+        m, j = np.nonzero(np.abs(centre) < margin)
+        lo, hi = self.cosine_range(n[m], j)
+        above[m, j] = lo >= 0
+        straddle[m, j] = (lo < 0) & (hi > 0)
+        return above, straddle
 
     def direction_to_pixel(self, d):
         """Row and column `(i, j)` (int arrays) of the pixels containing directions `d (..., 3)`."""
@@ -291,3 +322,10 @@ def _overlap(coarse: np.ndarray, fine: np.ndarray) -> np.ndarray:
     lo = np.maximum(coarse[:-1, None], fine[None, :-1])
     hi = np.minimum(coarse[1:, None], fine[None, 1:])
     return np.maximum(hi - lo, 0.0)
+
+
+@functools.lru_cache(maxsize=8)
+def _horizon_constants(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """`(centres (N, 3), sin(beta) + 1e-9 (N,))` of a grid, for `EnvGrid.horizon_classes` (built once)."""
+    grid = EnvGrid(height, width)
+    return grid.directions().reshape(-1, 3), np.sin(grid.angular_radius().reshape(-1)) + 1e-9

@@ -45,11 +45,18 @@ class Surface:
     - `roughness`: None (default) for a matte surface; a GGX roughness in [0.05, 1] makes it
       glossy, a diffuse base of this albedo under a rough dielectric interface of index `ior`
       (default 1.5: varnish, lacquer), the material of Mitsuba's `roughplastic` (`scene._gloss`).
+    - `smooth`: shade with the mesh's vertex normals interpolated across each face (Phong
+      normals, `n = normalize(sum_k b_k n_k)` with the hit's barycentrics `b`) instead of the
+      faces' own (default False). A scanned or tessellated curved object observed by the camera
+      wants it: its shading then varies smoothly, not face by face. Shadow rays still meet the
+      faces as they are.
     """
 
-    def __init__(self, mesh, albedo=0.8, observe: bool = True, roughness: float | None = None, ior: float = 1.5):
+    def __init__(self, mesh, albedo=0.8, observe: bool = True, roughness: float | None = None, ior: float = 1.5,
+                 smooth: bool = False):
         self.mesh = load_mesh(mesh)
         self.observe = bool(observe)
+        self.smooth = bool(smooth)
         self.gloss = None if roughness is None else Gloss(roughness, ior)
         albedo = np.asarray(albedo, dtype=np.float64)
         if not np.all(np.isfinite(albedo)) or albedo.size == 0:
@@ -76,6 +83,8 @@ class Surface:
         self.corner_uv = (
             np.asarray(self.mesh.visual.uv, dtype=np.float64)[self.mesh.faces] if albedo.ndim == 2 else None
         )
+        # (F, 3, 3) unit vertex normals at each face's corners, oriented as the face's own normal
+        self.corner_normals = _corner_normals(self.mesh, self.normals) if self.smooth else None
 
     @property
     def planar(self) -> bool:
@@ -90,7 +99,21 @@ class Surface:
     @property
     def shadows_itself(self) -> bool:
         """Can one point of the surface shadow another? Not when it is planar or closed and convex."""
-        return not (self.planar or (self.mesh.is_watertight and self.mesh.is_convex))
+        try:
+            return self._shadows_itself
+        except AttributeError:
+            self._shadows_itself = not (self.planar or (self.mesh.is_watertight and self.mesh.is_convex))
+            return self._shadows_itself
+
+    def normals_at(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Unit shading normals `(n, 3)` at hits on `faces (n,)` with Embree barycentrics `bary (n, 2)`:
+        the faces' own, or with `smooth` the vertex normals interpolated and renormalized."""
+        if self.corner_normals is None:
+            return self.normals[faces]
+        w = np.stack([1 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]], -1)
+        n = np.einsum("nk,nkc->nc", w, self.corner_normals[faces])
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        return np.where(length > 1e-12, n / np.maximum(length, 1e-12), self.normals[faces])
 
     def bounding_sphere(self):
         """`(centre (3,), radius)` of a sphere enclosing the surface (box centre, half diagonal)."""
@@ -110,7 +133,9 @@ class Surface:
     def __repr__(self):
         kind = {0: f"{float(self.albedo):.3g}", 1: "per-face", 2: f"texture {self.albedo.shape}"}
         gloss = "" if self.gloss is None else f", roughness={self.gloss.roughness:g}, ior={self.gloss.ior:g}"
-        return f"Surface({len(self.triangles)} faces, albedo={kind[self.albedo.ndim]}, observe={self.observe}{gloss})"
+        smooth = ", smooth=True" if self.smooth else ""
+        return (f"Surface({len(self.triangles)} faces, albedo={kind[self.albedo.ndim]}, observe={self.observe}"
+                f"{gloss}{smooth})")
 
 
 class Scene:
@@ -157,6 +182,24 @@ def _face_normals(tri: np.ndarray) -> np.ndarray:
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     length = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.where(length > 0, length, 1.0)
+
+
+def _corner_normals(mesh: trimesh.Trimesh, face_normals: np.ndarray) -> np.ndarray:
+    """`(F, 3, 3)`: each face corner's vertex normal (the area-weighted mean of the faces around the
+    vertex), flipped where it points against the face's own normal (a mesh wound inconsistently)."""
+    faces = np.asarray(mesh.faces)
+    tri = np.asarray(mesh.vertices, dtype=np.float64)[faces]
+    weighted = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # normal times twice the area
+    vertex = np.zeros((len(mesh.vertices), 3))
+    for k in range(3):
+        np.add.at(vertex, faces[:, k], weighted)
+    length = np.linalg.norm(vertex, axis=1, keepdims=True)
+    vertex = vertex / np.where(length > 0, length, 1.0)
+    corners = vertex[faces]
+    flip = np.einsum("fkc,fc->fk", corners, face_normals) < 0
+    corners = np.where(flip[..., None], -corners, corners)
+    degenerate = np.linalg.norm(corners, axis=2) < 0.5  # a vertex whose faces' normals cancel
+    return np.where(degenerate[..., None], face_normals[:, None, :], corners)
 
 
 def _bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:

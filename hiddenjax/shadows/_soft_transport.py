@@ -86,8 +86,8 @@ class SoftTransport(eqx.Module):
         normal, x = pts.normal, pts.position
         normals, which = np.unique(normal, axis=0, return_inverse=True)
         which = which.reshape(-1)
-        lo, hi = grid.cosine_range(normals)
-        above, straddle = (lo >= 0)[which], ((lo < 0) & (hi > 0))[which]
+        above, straddle = grid.horizon_classes(normals)
+        above, straddle = above[which], straddle[which]
         columns = np.nonzero(np.any(above | straddle, axis=0))[0]
         closed = np.where(above, (normals @ grid.direction_moments().reshape(-1, 3).T)[which], 0.0)
         u = stratified_square(np.random.default_rng([seed, 3]), len(columns), int(samples))

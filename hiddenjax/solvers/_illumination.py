@@ -528,6 +528,45 @@ class IlluminationOperator(eqx.Module):
         B, ls, lr = prior.normal_matrix(Ts, gram)
         return cls(Ts, B, _cholesky(B), jnp.asarray(ls), jnp.asarray(lr), prior)
 
+    def masked(self, mask) -> "IlluminationOperator":
+        """This operator with observed pixels left out, without forming `A^T A` again.
+
+        `mask (H, W)` bool (one per view for several views) is True where a pixel is used: a photo's
+        saturated pixels, specular highlights or an occluding hand are False. The left-out rows `a_p`
+        become zero in the views (so `solve(image)` ignores the image there) and come off the data
+        term, `A_m^T A_m = A^T A - sum_(p out) a_p a_p^T`: `P_out N^2` operations instead of `P N^2`
+        (with more than a quarter of the rows out, `A_m^T A_m` is formed anew). The prior's relative
+        weights scale with the masked matrices' `mean(diag(A_m^T A_m))`, as `build` would have them.
+        Dense matrices on one device and the L2 priors (`"l2"`, `"hdr"`); shapes do not change, so
+        every photo's operator runs the programs compiled for the first.
+        """
+        if not compiles_whole(self.views) or not isinstance(self.prior, L2Prior):
+            raise ValueError("masked() takes dense transport matrices and an L2 prior ('l2', 'hdr'); for "
+                             f"{type(self.prior).__name__} or a matrix-free operator, build the operator from "
+                             "matrices whose left-out rows are zero")
+        masks = (mask,) if len(self.views) == 1 else tuple(mask)
+        if len(masks) != len(self.views):
+            raise ValueError(f"{len(self.views)} views need {len(self.views)} masks, got {len(masks)}")
+        views, data = [], self.prior.parts(self)[1]
+        for t, m in zip(self.views, masks):
+            m = np.asarray(m)
+            if m.shape != t.image_shape or m.dtype != bool:
+                raise ValueError(f"mask must be a bool array of the image shape {t.image_shape}, got {m.dtype} {m.shape}")
+            keep = t.image_to_rows(m)
+            if not np.any(keep):
+                raise ValueError("the mask leaves out every observed pixel: nothing is left to solve with")
+            out = np.nonzero(~keep)[0]
+            A = _zero_rows(t.A, jnp.asarray(keep))
+            if len(out) > len(keep) // 4:
+                data = data - gram_matrix(t.A) + gram_matrix(A)
+            elif len(out):
+                bucket = max(64, 1 << int(np.ceil(np.log2(len(out)))))  # a few programs, not one per count
+                rows = np.zeros(bucket, np.int32)
+                rows[: len(out)] = out
+                data = _downdate(data, t.A, jnp.asarray(rows), jnp.asarray(np.arange(bucket) < len(out)))
+            views.append(eqx.tree_at(lambda v: v.A, t, A))
+        return type(self).from_gram(tuple(views) if len(views) > 1 else views[0], data, prior=self.prior)
+
     def inverse(self) -> Float[Array, "N P"]:
         """`G = (A^T A + R)^-1 A^T` (eq. 5.9 with the smoothness prior); `G @ y` is the signed estimate.
 
@@ -615,6 +654,18 @@ def _as_columns(stack):
     M, channels = stack.shape[0], stack.shape[3:]
     columns = jnp.moveaxis(stack, 0, -1).reshape(stack.shape[1:3] + (-1,))
     return columns, lambda a, lead: jnp.moveaxis(a.reshape(a.shape[:lead] + channels + (M,)), -1, 0)
+
+
+@jit
+def _zero_rows(A, keep):
+    return jnp.where(keep[:, None], A, 0)
+
+
+@jit
+def _downdate(data, A, rows, valid):
+    """`data - sum_k a_(rows k) a_(rows k)^T` over the valid entries of `rows`."""
+    out = jnp.where(valid[:, None], A[rows], 0)
+    return data - out.T @ out
 
 
 def compiles_whole(Ts) -> bool:

@@ -13,5 +13,6 @@ from ._sharding import row_mesh as row_mesh
 from ._sharding import shard as shard
 from ._sharding import transport_matrix_sharded as transport_matrix_sharded
 from ._reference import reference_render as reference_render
+from ._point_lights import DistantLightRows as DistantLightRows
 from ._point_lights import depth_map as depth_map
 from ._point_lights import render_point_lights as render_point_lights

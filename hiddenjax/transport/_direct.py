@@ -9,8 +9,8 @@ For a point `x` with normal `n` and env pixel `j`, the row entry (before `albedo
 - pixel straddling the horizon: `(Omega_j/S) sum_k V_k max(0, n.w_k)`.
 
 `V_k` needs an Embree query only when `w_k` points into the bounding cone of an occluder
-(a surface other than a planar one the point lies on); every other sample is visible by
-construction. The `S` samples are stratified in the pixel and independent per point.
+(a surface other than a planar or closed convex one the point lies on: those cannot shadow their
+own points); every other sample is visible by construction. The `S` samples are stratified in the pixel and independent per point.
 
 Glossy surfaces (`Surface(roughness=...)`, `scene._gloss`) seen from a view direction `v`: the
 diffuse base weights each direction by `t(n.w) n.w` instead of `n.w` (its unoccluded part by a
@@ -51,7 +51,8 @@ class DirectLighting:
         self.centres32 = self.centres.astype(np.float32)
         self._horizons = {}  # a few distinct normals (planar receivers) -> their horizon classes
         self.spheres = [s.bounding_sphere() for s in scene]
-        self.planar = np.array([s.planar for s in scene])
+        # a point on a planar or closed convex surface is never shadowed by that surface: no rays
+        self.self_shadowing = np.array([s.shadows_itself for s in scene])
         self.gloss = [s.gloss for s in scene]
         self.glossy = np.array([g is not None for g in self.gloss] + [False])  # index -1: a miss
 
@@ -137,17 +138,16 @@ class DirectLighting:
         key = normals.tobytes() if len(normals) <= 4 else None
         if key in self._horizons:
             return self._horizons[key]
-        lo, hi = self.grid.cosine_range(normals)
-        above = lo >= 0
-        out = (above, ~above & (hi > 0), np.where(above, normals @ self.moments.T, 0.0))
+        above, straddle = self.grid.horizon_classes(normals)
+        out = (above, straddle, np.where(above, normals @ self.moments.T, 0.0))
         if key is not None and len(self._horizons) < 64:
             self._horizons[key] = out
         return out
 
     def closed_form(self, normals) -> np.ndarray:
         """`(K, N)`: `n . integral over Omega_j of w dw` for the pixels wholly above each normal's horizon, else 0."""
-        lo, _ = self.grid.cosine_range(normals)
-        return np.where(lo >= 0, normals @ self.moments.T, 0.0)
+        above, _ = self.grid.horizon_classes(normals)
+        return np.where(above, normals @ self.moments.T, 0.0)
 
     def split_rows(self, x, n, surface, rng: np.random.Generator, view=None) -> "SplitRows":
         """`E = closed[which] + sparse(m, j, delta)`: the rows of `rows` as their two parts.
@@ -190,7 +190,7 @@ class DirectLighting:
         cones = []  # (active (M,), axis (M,3), cos_alpha (M,)) per occluder
         candidate = np.zeros((M, N), dtype=bool)
         for k, (centre, radius) in enumerate(self.spheres):
-            active = ~(self.planar[k] & (surface == k))
+            active = self.self_shadowing[k] | (surface != k)
             if not np.any(active):
                 continue
             v = centre - x

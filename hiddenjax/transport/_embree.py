@@ -22,7 +22,7 @@ class Hits(NamedTuple):
     face: np.ndarray  # (n,) int, face within that surface
     bary: np.ndarray  # (n, 2) Embree barycentrics (u, v)
     position: np.ndarray  # (n, 3) float64
-    normal: np.ndarray  # (n, 3) unit geometric normal facing the incoming ray
+    normal: np.ndarray  # (n, 3) unit shading normal (`Surface.normals_at`) on the side the ray hits
     albedo: np.ndarray  # (n,) albedo at the hit (0 where missed)
 
 
@@ -78,8 +78,8 @@ class RayCaster:
             sel = surface == k
             if not np.any(sel):
                 continue
-            nk = s.normals[face[sel]]
-            flip = np.sum(nk * directions[sel], axis=-1) > 0
+            flip = np.sum(s.normals[face[sel]] * directions[sel], axis=-1) > 0  # the face's side the ray hits
+            nk = s.normals_at(face[sel], bary[sel])
             normal[sel] = np.where(flip[:, None], -nk, nk)
             albedo[sel] = s.albedo_at(face[sel], bary[sel])
         return Hits(surface, face, bary, position, normal, albedo)

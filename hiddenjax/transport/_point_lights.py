@@ -1,15 +1,19 @@
-"""Exact (Embree, hard-shadow) images under isotropic point lights, and z-buffers.
+"""Exact (Embree, hard-shadow) images under isotropic point lights and distant lights, and z-buffers.
 
 The non-differentiable reference for the sigmoid shadow volumes of `hj.shadows`: a footprint
 sample `x` with normal `n` and albedo `rho` receives, from a light of intensity `I` (W/sr) at
 `l`, the radiance `rho/pi * I * max(0, n.w) / d^2 * V(x, l)` with `w = (l - x)/d`, `d = |l - x|`
-(eq. 4.11 without the ambient term).
+(eq. 4.11 without the ambient term). A distant light of power `s` (radiance integrated over its
+solid angle) from the direction `w` gives `rho/pi * s * max(0, n.w) * V(x, w)`: the limit of a
+map cell `j` of radiance `s / Omega_j` as the cell shrinks around `w` (eq. 5.1).
 """
 
 import numpy as np
 
 from ..scene import Camera, Scene
+from ._build import _Points
 from ._embree import RayCaster, pixel_centre_hits, primary_hits
+from ._matrix import TransportMatrix
 
 
 def check_lights(lights, intensities=None) -> tuple[np.ndarray, np.ndarray]:
@@ -57,3 +61,49 @@ def depth_map(scene: Scene, camera: Camera) -> np.ndarray:
     R, t = np.asarray(camera.rotation, np.float64), np.asarray(camera.translation, np.float64)
     z = (hits.position @ R.T + t)[:, 2]
     return np.where(hits.surface >= 0, z, 0.0).reshape(camera.height, camera.width).astype(np.float32)
+
+
+class DistantLightRows:
+    """The observed pixels' radiance under unit-power distant lights, `(P, K)` for directions `(K, 3)`.
+
+    Row `p` is the pixel's mean over the footprint samples of the transport matrix `T` (its
+    `seed`, and its `pixel_samples` unless given) of `rho/pi * max(0, n.w) * V(x, w)` (module docstring), so that
+    `rows(w) @ s` is the image of lights of powers `s` in the radiance units of `A @ x`: a map cell
+    of radiance `s / Omega_j` gives nearly the same pixels (exactly, as the cell shrinks). Shadow
+    rays are cast only from points where some other surface, or a surface that can shadow itself,
+    could be in the way (none for an object alone that is convex and closed).
+    """
+
+    def __init__(self, scene: Scene, camera: Camera, T: TransportMatrix, pixel_samples: int | None = None):
+        if (camera.height, camera.width) != tuple(T.image_shape):
+            raise ValueError(f"the camera's image {(camera.height, camera.width)} is not the transport matrix's "
+                             f"{tuple(T.image_shape)}")
+        if scene.glossy:
+            raise ValueError("distant-light rows model diffuse surfaces; a glossy surface's lobe needs the map")
+        self.caster = RayCaster(scene)
+        S = T.pixel_samples if pixel_samples is None else int(pixel_samples)
+        if S < 1:
+            raise ValueError(f"pixel_samples must be at least 1, got {pixel_samples}")
+        hits, directions = primary_hits(self.caster, camera, S, T.seed)
+        pixels = np.asarray(T.pixels)
+        self.shape = (len(pixels), S)
+        self.points = _Points(hits, (pixels[:, None] * S + np.arange(S)).reshape(-1), self.caster.offset, directions)
+        # a footprint sample that misses the scene (more samples than T's, on a silhouette) adds nothing
+        self.points.albedo = np.where(self.points.surface >= 0, self.points.albedo, 0.0)
+        own = np.array([not s.shadows_itself for s in scene] + [True])[self.points.surface]
+        self.traced = (~own | (len(scene) > 1)) & (self.points.surface >= 0)  # shadow rays that may meet something
+
+    def __call__(self, directions) -> np.ndarray:
+        w = np.atleast_2d(np.asarray(directions, dtype=np.float64))
+        w = w / np.linalg.norm(w, axis=1, keepdims=True)
+        pts = self.points
+        cos = np.maximum(pts.normal @ w.T, 0.0)  # (M, K)
+        lit = np.nonzero((cos > 0) & self.traced[:, None])
+        if len(lit[0]):
+            hit = self.caster.first_surface(pts.position[lit[0]], w[lit[1]])
+            self_shadowing = np.array([s.shadows_itself for s in self.caster.scene] + [True])
+            # a surface that cannot shadow itself does not (its smooth normals can point past a facet)
+            blocked = (hit >= 0) & ((hit != pts.surface[lit[0]]) | self_shadowing[hit])
+            cos[lit[0][blocked], lit[1][blocked]] = 0.0
+        rows = (pts.albedo / np.pi)[:, None] * cos
+        return rows.reshape(*self.shape, -1).mean(axis=1)

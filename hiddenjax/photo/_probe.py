@@ -1,0 +1,173 @@
+"""A light probe: the light from photos of an object alone, its own shading as the camera.
+
+The object is observed by the camera and nothing else is in the scene: the rows of `A` are the
+object's visible surface (smooth shading normals, attached and cast self-shadows; a closed convex
+object casts none, and its build traces no shadow rays), eq. 5.1-5.2 with the object's albedo taken
+as 1, so the map and the lights' powers are in units of light times the albedo.
+
+The frame is the photometric-stereo camera frame: x right, y up, z towards the camera (the env
+grid's zenith +y is the photo's up). A sphere is fitted to its mask (centre and radius from the
+mask's area and centroid; a mask that is not a disc is refused) and seen by a far camera, 1000
+radii away, so the projection is orthographic to within 0.06 degrees. A mesh is given in OpenCV
+camera coordinates (x right, y down, z forward, metres) with the camera's intrinsics.
+
+Each photo is solved with one transport matrix: a map (eq. 5.3, a weak L2 prior, the photo's
+saturated pixels left out by `IlluminationOperator.masked`), its dominant lights
+(`dominant_lights`), and those refined against the photo at continuous directions
+(`refine_lights`). Large objects are averaged down by a whole factor first (at most `max_size`
+pixels across): the lights need the shading's shape, not every pixel.
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+import trimesh
+
+from ..scene import Camera, EnvGrid, Scene, Surface
+from ..solvers import IlluminationOperator, L2Prior
+from ..solvers import Lights, dominant_lights, refine_lights
+from ..transport import TransportMatrix, transport_matrix
+from ..transport import DistantLightRows
+
+DEFAULT_GRID = (32, 64)
+DEFAULT_MAX_SIZE = 72  # pixels across the object after averaging down
+MIN_SIZE = 16  # pixels across: a smaller object is refused
+DISC_OVERLAP = 0.92  # a sphere's mask must share this fraction (intersection over union) with its fitted disc
+MAX_SATURATED = 0.5  # a photo saturated over more of the object is refused
+ROW_SAMPLES = 4  # footprint samples of the lights' rows (the map's matrix takes the pixel centres)
+PROBE_PRIOR = L2Prior(smooth=1e-3, ridge=1e-3)  # weak: the lights are refined against the photo anyway
+_FAR = 1000.0  # camera distance in sphere radii
+_TO_OPENCV = np.diag([1.0, -1.0, -1.0])  # the probe's frame (x right, y up, z to the camera) -> OpenCV's camera
+
+
+def fit_sphere(mask) -> tuple[float, float, float]:
+    """`(row, col, radius)` in pixels (continuous coordinates: pixel centres at +.5) of the disc a sphere's
+    mask shows: centroid and `sqrt(area / pi)`. A mask that is empty, or not a disc, is refused."""
+    mask = _check_mask(mask)
+    rows, cols = np.nonzero(mask)
+    r0, c0, radius = rows.mean() + 0.5, cols.mean() + 0.5, math.sqrt(len(rows) / math.pi)
+    rr, cc = np.mgrid[: mask.shape[0], : mask.shape[1]] + 0.5
+    disc = (rr - r0) ** 2 + (cc - c0) ** 2 <= radius**2
+    overlap = np.count_nonzero(disc & mask) / np.count_nonzero(disc | mask)
+    if overlap < DISC_OVERLAP:
+        raise ValueError(f"the mask is not a disc (it shares {overlap:.0%} with the disc of its area and centre, "
+                         f"need {DISC_OVERLAP:.0%}): mask the sphere alone, or give --object MESH for another shape")
+    return r0, c0, radius
+
+
+def _check_mask(mask) -> np.ndarray:
+    mask = np.asarray(mask)
+    if mask.ndim != 2:
+        raise ValueError(f"the mask must be one channel (H, W), got shape {mask.shape}")
+    mask = mask > 0.5 if mask.dtype != bool else mask
+    if not np.any(mask):
+        raise ValueError("the mask is empty: mark the object's pixels (white) in it")
+    return mask
+
+
+@dataclasses.dataclass(frozen=True)
+class ProbeResult:
+    """One photo's light: `env (H, W[, C])` the map on the grid in the probe's frame, `lights` refined
+    (directions in the probe's frame: x right, y up, z towards the camera), `saturated` pixels left out."""
+
+    env: np.ndarray
+    lights: Lights
+    saturated: int
+
+
+class Probe:
+    """The transport of one view of an object alone, built once and used for every photo of that view.
+
+    `Probe.sphere(mask)` or `Probe.mesh(mesh, K, image_size, mask)`; then `probe.solve(photo, saturated)`.
+    `factor` is the averaging-down factor, `T` the transport matrix (of the averaged image).
+    """
+
+    def __init__(self, scene: Scene, camera: Camera, mask, factor: int, grid: EnvGrid, image_shape, samples: int = 16):
+        self.scene, self.camera, self.factor, self.grid = scene, camera, factor, grid
+        self.image_shape = tuple(image_shape)
+        self.T: TransportMatrix = transport_matrix(scene, camera, grid, samples=samples, pixel_samples=1,
+                                                   mask=mask, progress=False)
+        if self.T.shape[0] < 16:
+            raise ValueError(f"only {self.T.shape[0]} pixels see the object wholly: the object is too small in the "
+                             f"photo; photograph it larger")
+        self.operator = IlluminationOperator.build(self.T, prior=PROBE_PRIOR)
+        self.rows = DistantLightRows(scene, camera, self.T, pixel_samples=ROW_SAMPLES)
+
+    @classmethod
+    def sphere(cls, mask, grid=DEFAULT_GRID, max_size: int = DEFAULT_MAX_SIZE, subdivisions: int = 5) -> "Probe":
+        """A sphere seen by a far camera, fitted to its `mask (H, W)` (module docstring)."""
+        mask = _check_mask(mask)
+        row, col, radius = fit_sphere(mask)
+        if 2 * radius < MIN_SIZE:
+            raise ValueError(f"the sphere is {2 * radius:.0f} pixels across: too small in the photo (need "
+                             f"{MIN_SIZE}); photograph it larger")
+        factor = _factor(2 * radius, max_size)
+        small = _shrink(mask, factor, all)
+        focal = radius / factor * _FAR
+        K = np.array([[focal, 0, col / factor - 0.5], [0, focal, row / factor - 0.5], [0, 0, 1]])
+        camera = Camera.from_opencv(K, _TO_OPENCV, [0, 0, _FAR], small.shape[1], small.shape[0])
+        surface = Surface(trimesh.creation.icosphere(subdivisions=subdivisions), 1.0, smooth=True)
+        return cls(Scene([surface]), camera, small, factor, _grid(grid), mask.shape)
+
+    @classmethod
+    def mesh(cls, mesh, K, image_size, mask, grid=DEFAULT_GRID, max_size: int = DEFAULT_MAX_SIZE) -> "Probe":
+        """A mesh in OpenCV camera coordinates (metres), seen by a camera of intrinsics `K (3, 3)` and
+        `image_size (width, height)`; `mask (H, W)` its pixels in the photo."""
+        mask = _check_mask(mask)
+        width, height = image_size
+        if mask.shape != (height, width):
+            raise ValueError(f"the mask is {mask.shape[1]}x{mask.shape[0]} but the camera's image is {width}x{height}")
+        mesh = trimesh.Trimesh(np.asarray(mesh.vertices) @ _TO_OPENCV, np.asarray(mesh.faces), process=False)  # a rotation
+        rows, cols = np.nonzero(mask)
+        across = max(np.ptp(rows), np.ptp(cols)) + 1
+        if across < MIN_SIZE:
+            raise ValueError(f"the object is {across} pixels across: too small in the photo (need {MIN_SIZE})")
+        factor = _factor(across, max_size)
+        small = _shrink(mask, factor, all)
+        K = np.array(K, dtype=np.float64)
+        K[:2] /= factor
+        K[:2, 2] += 0.5 / factor - 0.5  # OpenCV's pixel centres are integers at either size
+        camera = Camera.from_opencv(K, _TO_OPENCV, np.zeros(3), small.shape[1], small.shape[0])
+        return cls(Scene([Surface(mesh, 1.0, smooth=True)]), camera, small, factor, _grid(grid), mask.shape)
+
+    def solve(self, photo, saturated=None, max_lights: int = 4) -> ProbeResult:
+        """The map and the lights of `photo (H, W[, C])` (linear) with its `saturated (H, W)` pixels left out."""
+        photo = np.asarray(photo, dtype=np.float32)
+        if photo.shape[:2] != self.image_shape:
+            raise ValueError(f"the photo is {photo.shape[1]}x{photo.shape[0]} but the mask is "
+                             f"{self.image_shape[1]}x{self.image_shape[0]}: give the mask of this view")
+        saturated = np.zeros(self.image_shape, bool) if saturated is None else np.asarray(saturated, bool)
+        small = _shrink(photo, self.factor, np.mean)
+        out = _shrink(saturated, self.factor, any)
+        observed = self.T.image_to_rows(out)
+        if observed.mean() > MAX_SATURATED:
+            raise ValueError(f"the photo is saturated on {observed.mean():.0%} of the object: take a shorter exposure "
+                             f"(or a bracket, --times)")
+        op = self.operator.masked(~out) if np.any(observed) else self.operator
+        solution = op.solve(small, throw=False)
+        lights = dominant_lights(solution.env, self.grid, max_lights=max_lights)
+        lights = refine_lights(self.T, self.scene, self.camera, small, solution.env, lights, mask=~out, rows=self.rows)
+        return ProbeResult(np.asarray(solution.env), lights, int(np.count_nonzero(observed)))
+
+
+def _grid(grid) -> EnvGrid:
+    return grid if isinstance(grid, EnvGrid) else EnvGrid(*grid)
+
+
+def _factor(across: float, max_size: int) -> int:
+    if max_size < MIN_SIZE:
+        raise ValueError(f"max_size must be at least {MIN_SIZE} pixels, got {max_size}")
+    return max(1, math.ceil(across / max_size))
+
+
+def _shrink(image, factor: int, reduce):
+    """`image` averaged down by `factor` (crops the last rows and columns that do not fill a block):
+    `reduce` is `np.mean` for values, `all`/`any` for masks."""
+    if factor == 1:
+        return np.asarray(image)
+    h, w = image.shape[0] // factor, image.shape[1] // factor
+    blocks = np.asarray(image)[: h * factor, : w * factor].reshape((h, factor, w, factor) + image.shape[2:])
+    if reduce is np.mean:
+        return blocks.mean(axis=(1, 3)).astype(np.float32)
+    return blocks.all(axis=(1, 3)) if reduce is all else blocks.any(axis=(1, 3))
