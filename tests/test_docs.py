@@ -16,7 +16,7 @@ import hiddenjax as hj
 ROOT = Path(__file__).resolve().parents[1]
 FAST = ["README.md", "docs/getting-started.md", "docs/guide/objects-as-cameras.md", "docs/guide/hidden-cues.md",
         "docs/guide/shadow-edges.md", "docs/guide/real-captures.md", "docs/guide/large-maps.md",
-        "docs/guide/compilation.md"]
+        "docs/guide/compilation.md", "docs/guide/light-probe.md"]
 SLOW = ["docs/guide/uncertain-scenes.md", "docs/guide/around-the-corner.md", "docs/guide/design.md"]
 
 

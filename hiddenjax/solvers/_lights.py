@@ -162,7 +162,7 @@ def refine_lights(T: TransportMatrix, scene, camera, image, env, lights: Lights,
     power = np.stack([scipy.optimize.nnls(R, residual[used, c])[0] for c in range(residual.shape[1])], axis=1)
     order = np.argsort(-power.mean(axis=1), kind="stable")
     strong = order[power[order].mean(axis=1) >= floor * power[order[0]].mean()]
-    channels = np.asarray(lights.power).shape[1:]
+    channels = image.shape[2:]  # the photo's, whatever the map's were
     cells = np.asarray(lights.cells)[keep_lights]
     return Lights(d[strong], power[strong].reshape((len(strong),) + channels), cells[strong])
 
