@@ -214,6 +214,7 @@ def _surface(s: _Table) -> Surface:
     elif isinstance(albedo, bool) or not isinstance(albedo, (int, float, list)):
         s.fail("albedo", f"must be a number, a per-face list or a texture path, got {albedo!r}")
     observe = s.boolean("observe", True)
+    smooth = s.boolean("smooth", False)
     roughness = s.number("roughness") if s.has("roughness") else None
     ior = s.number("ior", 1.5)
     if s.has("ior") and roughness is None:
@@ -225,7 +226,7 @@ def _surface(s: _Table) -> Surface:
             s.fail("roughness", f"is invalid: {e}")
     s.done()
     try:
-        return Surface(mesh, albedo, observe=observe, roughness=roughness, ior=ior)
+        return Surface(mesh, albedo, observe=observe, roughness=roughness, ior=ior, smooth=smooth)
     except ValueError as e:
         s.fail("albedo", f"is invalid: {e}")
 

@@ -119,6 +119,17 @@ def test_distant_light_rows_are_the_limit_of_a_small_lit_cell(probe):
     assert np.allclose(rows([0, 0, -1.0]), 0)  # a light behind the sphere lights none of the pixels seen
 
 
+def test_distant_light_rows_gradient_matches_finite_differences(probe):
+    w = unit([0.3, -0.2, 0.9])
+    rows, grad = probe.rows.with_gradient(w)
+    for e in np.eye(3):
+        h = 1e-5
+        fd = (probe.rows.with_gradient(w + h * e, gradient=False)[0] - probe.rows.with_gradient(w - h * e, gradient=False)[0]) / (2 * h)
+        # rows normalize w: compare along the tangent part of e
+        tangent = e - w * (w @ e)
+        assert np.allclose(fd[:, 0], grad[:, 0] @ tangent, atol=1e-4 * np.abs(grad).max())
+
+
 def test_dominant_lights_read_continuous_directions_off_a_map():
     grid = hj.EnvGrid(32, 64)
     centres = np.asarray(grid.directions()).reshape(-1, 3)

@@ -45,6 +45,9 @@ def add_parsers(sub) -> None:
                    help="a glossy (varnished, satin) table: its GGX roughness (0.05-1; 0.25: satin) or 'auto' to "
                         "choose it from the photo (default: matte)")
     p.add_argument("--ior", type=float, default=1.5, help="the glossy table's index of refraction (default 1.5)")
+    p.add_argument("--observe", choices=_photo.OBSERVE, default="table",
+                   help="the pixels solved with: the plain table (default), the object's own shading, or both (the "
+                        "object's albedo is then solved with the map)")
     p.add_argument("--object-mask", help="the object's pixels (white) in the photo, when it is not darker than the table")
     p.add_argument("--no-refine", action="store_true", help="keep the stated place (no outline matching)")
     p.add_argument("--width", type=int, default=128, help="pixels across for the solve (default 128)")
@@ -99,7 +102,7 @@ def reconstruct(args) -> dict:
         width=args.width, grid=grid, samples=args.samples, pixel_samples=args.pixel_samples, prior=args.prior,
         albedo=args.albedo, seed=args.seed, progress=not args.quiet,
         plate=None if plate is None else plate.radiance, plate_saturated=None if plate is None else plate.saturated,
-        gloss=gloss, ior=args.ior,
+        gloss=gloss, ior=args.ior, observe=args.observe,
     )
     seconds = time.perf_counter() - t0
     sheet = _capture_sheet(b, photo.radiance, intr, rec)
@@ -121,7 +124,7 @@ def reconstruct(args) -> dict:
                   reprojection_error_px=rec.pose.reprojection_error, corners=rec.pose.corners),
         placement=dict(x=p.x, z=p.z, yaw_deg=p.yaw),
         refinement=None if r is None else dict(iou=r.iou, initial_iou=r.initial_iou),
-        observed_pixels=int(rec.mask.sum()), seconds=seconds, cues=cue_summary, residual=rec.residual,
+        observed_pixels=int(rec.mask.sum()), observe=rec.observe, object_albedo=rec.object_albedo, seconds=seconds, cues=cue_summary, residual=rec.residual,
         table=dict(roughness=rec.roughness, ior=args.ior if rec.roughness is not None else None,
                    glossy_to_matte_residual=rec.glare),
         plate=None if rec.plate is None else dict(shift_px=rec.plate.shift_px, corners=rec.plate.pose.corners,
@@ -133,7 +136,10 @@ def reconstruct(args) -> dict:
     table = "" if rec.plate is None else f" (albedo from the plate, moved {rec.plate.shift_px:.1f} px)"
     table += "" if rec.roughness is None else f" (glossy, roughness {rec.roughness:g})"
     print(f"wrote {out}/: board found ({rec.pose.corners} corners, {rec.pose.reprojection_error:.2f} px){moved}; "
-          f"{int(rec.mask.sum())} table pixels observed{table}, {grid.height}x{grid.width} map in {seconds:.1f} s; "
+          f"{int(rec.mask.sum())} {'table' if rec.observe == 'table' else rec.observe.replace('both', 'table and object')}"
+          f" pixels observed{table}"
+          + ("" if rec.object_albedo is None else f" (object albedo {rec.object_albedo:.3f} x the table's)")
+          + f", {grid.height}x{grid.width} map in {seconds:.1f} s; "
           f"check {out}/check.png")
     return results
 

@@ -39,6 +39,7 @@ from ._probe import fit_sphere as fit_sphere
 from ._plate import Plate as Plate
 from ._plate import clean_plate as clean_plate
 from ._reconstruct import GLARE_GAIN as GLARE_GAIN
+from ._reconstruct import OBSERVE as OBSERVE
 from ._reconstruct import TEXTURE_RESIDUAL as TEXTURE_RESIDUAL
 from ._reconstruct import choose_roughness as choose_roughness
 from ._reconstruct import fit_residual as fit_residual

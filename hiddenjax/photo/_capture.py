@@ -108,14 +108,15 @@ def place(base: trimesh.Trimesh, placement: Placement) -> trimesh.Trimesh:
 
 
 def capture_scene(base: trimesh.Trimesh, placement: Placement, albedo: float = 1.0,
-                  table_size: float = 4.0, roughness: float | None = None, ior: float = 1.5) -> Scene:
+                  table_size: float = 4.0, roughness: float | None = None, ior: float = 1.5,
+                  observe_object: bool = False, object_albedo: float = 0.5) -> Scene:
     """The table plane (albedo `albedo`, observed; glossy with a `roughness`) and the object standing
-    on it (not observed)."""
+    on it (albedo `object_albedo`; observed, with smooth shading normals, when `observe_object`)."""
     lift = 1e-4 * float(np.ptp(base.vertices, axis=0).max())  # no z-fighting with the table
     obj = place(base, placement)
     obj.apply_translation([0.0, lift, 0.0])
     return Scene([Surface(ground_plane(table_size), albedo, observe=True, roughness=roughness, ior=ior),
-                  Surface(obj, 0.5, observe=False)])
+                  Surface(obj, object_albedo, observe=observe_object, smooth=observe_object)])
 
 
 def silhouette(mesh: trimesh.Trimesh, camera: Camera, supersample: int = 4) -> np.ndarray:

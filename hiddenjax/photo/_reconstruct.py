@@ -21,6 +21,7 @@ import warnings
 from typing import NamedTuple
 
 import cv2
+import equinox as eqx
 import numpy as np
 
 from ..scene import Camera, EnvGrid, Scene, check_gloss
@@ -65,6 +66,8 @@ class Reconstruction(NamedTuple):
     roughness: float | None = None  # the table's gloss (None: matte)
     glare: float | None = None  # the glare check: a glossy table's residual over the matte one's (None: not run)
     saturated: np.ndarray | None = None  # pixels (solve size) touching a saturated one: left out
+    observe: str = "table"  # the rows of A: the table's, the object's own shading, or both
+    object_albedo: float | None = None  # the object's albedo solved with the map (observe="both")
 
 
 def _resize(image, width: int, height: int) -> np.ndarray:
@@ -101,6 +104,7 @@ def reconstruct(
     gloss=None,
     ior: float = 1.5,
     check_glare: bool = True,
+    observe: str = "table",
     seed: int = 0,
     progress: bool = False,
 ) -> Reconstruction:
@@ -116,7 +120,15 @@ def reconstruct(
     `gloss` makes the table glossy (`Surface(roughness=...)`, index `ior`): a GGX roughness, or
     `"auto"` to choose it from the photo (`choose_roughness`). Without it the table is matte, and
     (with `check_glare`) small solves with a glossy table beside the matte one (`GLARE_CHECK`) warn
-    when gloss explains the photo better (a residual below `GLARE_GAIN` of the matte one's)."""
+    when gloss explains the photo better (a residual below `GLARE_GAIN` of the matte one's).
+
+    `observe` chooses the rows of `A`: `"table"` (the plain table around the board), `"object"` (the
+    object's own shading: the pixels wholly on it, smooth normals, attached and cast self-shadows) or
+    `"both"`. With both, the object's albedo relative to the table's is unknown and is solved with
+    the map: `OBJECT_ALBEDO_PASSES` alternations of the map (its rows fixed) and the least-squares
+    scale of the object's rows, `c = <A_o x, y_o> / |A_o x|^2` (the object one colour)."""
+    if observe not in OBSERVE:
+        raise ValueError(f"observe must be one of {', '.join(OBSERVE)}, got {observe!r}")
     if isinstance(gloss, str) and gloss != "auto":
         raise ValueError(f"gloss must be a roughness (GGX alpha, 0.05-1) or 'auto', got {gloss!r}")
     if gloss is not None:  # before any work: the roughness, or 'auto' and the index
@@ -154,6 +166,7 @@ def reconstruct(
         refinement = refine_placement(base, refine_camera, placement, target, care, radiance=refine_photo)
         placement = refinement.placement
 
+    unplated = photo
     used_plate = None
     if plate is not None:
         full_camera = pose.camera(W0, H0)
@@ -179,17 +192,31 @@ def reconstruct(
     mask = table_mask(board, camera, saturated=clipped)
     if used_plate is not None:
         mask &= ~_resize_any(table & ~used_plate.valid, width, height)
+    on_object = (silhouette(place(base, placement), camera) > 0.999) & ~clipped  # pixels wholly on the object
+    if observe != "table":
+        if not np.any(on_object):
+            raise ValueError("no pixel of the solve lies wholly on the object: it is too small in the photo for "
+                             "observe='object'/'both'; raise the solve's width or photograph it larger")
+        mask = on_object | (mask if observe == "both" else False)
+        small = np.where(on_object[..., None] if small.ndim == 3 else on_object,
+                         _resize(unplated, width, height), small)  # a plate is the table's albedo, not the object's
     if gloss == "auto":
         gloss = choose_roughness(base, placement, pose, photo, saturated, board, albedo, ior, grid, seed).roughness
-    scene = capture_scene(base, placement, albedo=albedo, table_size=TABLE_SIZE, roughness=gloss, ior=ior)
+    object_albedo = 0.5
+    scene = capture_scene(base, placement, albedo=albedo, table_size=TABLE_SIZE, roughness=gloss, ior=ior,
+                          observe_object=observe != "table", object_albedo=object_albedo)
     T = transport_matrix(scene, camera, grid, samples=samples, pixel_samples=pixel_samples, mask=mask, seed=seed,
                          progress=progress)
     if T.A.shape[0] < 16:
-        raise ValueError(f"only {T.A.shape[0]} pixels see the plain table; frame more table around the object")
+        seen = "the plain table" if observe == "table" else "the object" if observe == "object" else "the table or object"
+        raise ValueError(f"only {T.A.shape[0]} pixels see {seen}; frame more of it around the object")
     solution = solve_illumination(T, small, prior=prior)
+    if observe == "both":
+        T, solution, object_albedo = _solve_object_albedo(T, small, on_object, solution, prior, object_albedo)
     env = np.asarray(solution.env)
-    residual = fit_residual(T, small, env)
-    if used_plate is None and residual > TEXTURE_RESIDUAL:
+    table_rows = ~T.image_to_rows(on_object) if observe == "both" else None
+    residual = fit_residual(T, small, env, table_rows) if observe != "object" else fit_residual(T, small, env)
+    if used_plate is None and observe != "object" and residual > TEXTURE_RESIDUAL:
         warnings.warn(f"the map leaves {residual:.0%} of the table's pixels unexplained: a table whose albedo "
                       f"varies (wood grain, a print) looks like this; photograph the same view without the object "
                       f"and give it as a clean plate (--plate, plate=), or put a sheet of paper under the object",
@@ -204,7 +231,30 @@ def reconstruct(
                           f"the matte table's): the table shows glare; model it with --gloss auto (gloss='auto') or "
                           f"its roughness", UserWarning, stacklevel=2)
     return Reconstruction(pose, base, placement, refinement, camera, small, np.asarray(T.mask), scene, T,
-                          env, solution, target, refine_camera, used_plate, residual, gloss, glare, clipped)
+                          env, solution, target, refine_camera, used_plate, residual, gloss, glare, clipped, observe,
+                          object_albedo if observe == "both" else None)
+
+
+OBSERVE = ("table", "object", "both")
+OBJECT_ALBEDO_PASSES = 3
+
+
+def _solve_object_albedo(T: TransportMatrix, image, on_object, solution, prior, albedo: float):
+    """`(T, solution, albedo)` after `OBJECT_ALBEDO_PASSES` alternations of the object rows' scale and the map
+    (`reconstruct`'s docstring); the object's rows and albedo in `T` scaled by the product of the scales."""
+    obj = np.asarray(T.image_to_rows(on_object))
+    y = T.image_to_rows(np.asarray(image, np.float64)).reshape(T.shape[0], -1)
+    for _ in range(OBJECT_ALBEDO_PASSES):
+        pred = (np.asarray(T.A, np.float64) @ np.asarray(solution.env, np.float64).reshape(T.shape[1], -1))
+        scale = float(np.sum(pred[obj] * y[obj]) / max(np.sum(pred[obj] ** 2), 1e-300))
+        if not np.isfinite(scale) or scale <= 0:
+            raise ValueError("the object's own shading does not fit the map (a scale <= 0): check its place, or "
+                             "observe the table alone")
+        factor = np.where(obj, scale, 1.0).astype(np.float32)
+        T = eqx.tree_at(lambda t: (t.A, t.albedo), T, (T.A * factor[:, None], T.albedo * factor))
+        albedo *= scale
+        solution = solve_illumination(T, image, prior=prior)
+    return T, solution, albedo
 
 
 def _gloss_keys(surface) -> str:
@@ -212,12 +262,16 @@ def _gloss_keys(surface) -> str:
     return "" if g is None else f"roughness = {g.roughness!r}\nior = {g.ior!r}\n"
 
 
-def fit_residual(T: TransportMatrix, image, env) -> float:
-    """`||y - A x|| / ||y||` over the observed pixels (every channel) of `image` and the map `env`."""
+def fit_residual(T: TransportMatrix, image, env, rows=None) -> float:
+    """`||y - A x|| / ||y||` over the observed pixels (every channel; `rows (P,)` bool: those only) of
+    `image` and the map `env`."""
     A = np.asarray(T.A, dtype=np.float64)
     y = np.asarray(image, dtype=np.float64).reshape(-1, *np.shape(image)[2:])[np.asarray(T.pixels)]
     x = np.asarray(env, dtype=np.float64).reshape(A.shape[1], *np.shape(env)[2:])
-    return float(np.linalg.norm(y - A @ x) / max(float(np.linalg.norm(y)), 1e-30))
+    r = y - A @ x
+    if rows is not None:
+        r, y = r[np.asarray(rows)], y[np.asarray(rows)]
+    return float(np.linalg.norm(r) / max(float(np.linalg.norm(y)), 1e-30))
 
 
 def scene_toml(rec: Reconstruction, grid: EnvGrid, samples: int, pixel_samples: int, seed: int, albedo: float,
@@ -240,7 +294,9 @@ def scene_toml(rec: Reconstruction, grid: EnvGrid, samples: int, pixel_samples: 
         f'[mask]\nimage = "{mask_file}"\n',
         f'[[surface]]\nmesh = "plane"\nalbedo = {albedo!r}\n' + _gloss_keys(rec.scene[0])
         + f'[surface.transform]\nscale = [{TABLE_SIZE}, 1.0, {TABLE_SIZE}]\n',
-        f'[[surface]]\nmesh = "{object_file}"  # metres, resting at the origin\nalbedo = 0.5\nobserve = false',
+        f'[[surface]]\nmesh = "{object_file}"  # metres, resting at the origin\n'
+        + (f"albedo = {rec.object_albedo if rec.object_albedo is not None else 0.5!r}\nobserve = true\nsmooth = true"
+           if rec.observe != "table" else "albedo = 0.5\nobserve = false"),
         "[surface.transform]",
         f"rotation = [0.0, {float(p.yaw)!r}, 0.0]",
         f"translation = [{float(p.x)!r}, {1e-4 * extent!r}, {float(p.z)!r}]",

@@ -181,20 +181,40 @@ def _fit(rows, keep, grey, start, used=None, passes: int = OUTLIER_PASSES) -> _F
     frames = [_tangent_frame(d) for d in start]
 
     def directions(z):
-        d = np.stack([d0 + z[2 * k] * e1 + z[2 * k + 1] * e2 for k, (d0, (e1, e2)) in enumerate(zip(start, frames))])
-        return d / np.linalg.norm(d, axis=1, keepdims=True)
+        u = np.stack([d0 + z[2 * k] * e1 + z[2 * k + 1] * e2 for k, (d0, (e1, e2)) in enumerate(zip(start, frames))])
+        return u / np.linalg.norm(u, axis=1, keepdims=True), np.linalg.norm(u, axis=1)
+
+    def model(z):
+        """`(R (P_kept, K), J (P_kept, 3K))`: the rows, and the Jacobian of `R exp(z_s)` in `z`."""
+        w, length = directions(z)
+        R, G = rows.with_gradient(w)
+        R, G, s = R[keep], G[keep], np.exp(z[2 * K:])
+        J = np.empty((len(R), 3 * K))
+        for k, (e1, e2) in enumerate(frames):
+            for m, e in enumerate((e1, e2)):  # d w / d offset = (e - w (w.e)) / |u|
+                J[:, 2 * k + m] = s[k] * G[:, k] @ ((e - w[k] * (w[k] @ e)) / length[k])
+        J[:, 2 * K:] = R * s
+        return R, J
 
     used = np.ones(len(grey), bool) if used is None else used
     s0, _ = scipy.optimize.nnls(rows(start)[keep][used], grey[used])
     z = np.concatenate([np.zeros(2 * K), np.log(np.maximum(s0, 0.05 * max(s0.max(), 1e-12)))])
     scale = np.concatenate([np.full(2 * K, 0.05), np.ones(K)])
     for _ in range(1 + passes):
-        misfit = lambda z: rows(directions(z))[keep][used] @ np.exp(z[2 * K:]) - grey[used]
-        z = scipy.optimize.least_squares(misfit, z, method="trf", diff_step=1e-5, x_scale=scale, max_nfev=200 * K).x
-        excess = grey - rows(directions(z))[keep] @ np.exp(z[2 * K:])  # highlights: brighter than any diffuse fit
+        last = {}
+
+        def evaluate(z):  # least_squares asks for the residual and the Jacobian at the same point
+            if last.get("z") is None or not np.array_equal(last["z"], z):
+                last["z"], (last["R"], last["J"]) = z.copy(), model(z)
+            return last["R"], last["J"]
+
+        misfit = lambda z: evaluate(z)[0][used] @ np.exp(z[2 * K:]) - grey[used]
+        jacobian = lambda z: evaluate(z)[1][used]
+        z = scipy.optimize.least_squares(misfit, z, jac=jacobian, method="trf", x_scale=scale, max_nfev=100 * K).x
+        excess = grey - evaluate(z)[0] @ np.exp(z[2 * K:])  # highlights: brighter than any diffuse fit
         spread = 1.4826 * np.median(np.abs(excess - np.median(excess)))
         used = excess <= np.median(excess) + max(OUTLIER_SIGMAS * spread, OUTLIER_FLOOR * np.abs(grey).max())
-    return _Fit(directions(z), excess, used)
+    return _Fit(directions(z)[0], excess, used)
 
 
 def _tangent_frame(d):

@@ -92,18 +92,28 @@ class DistantLightRows:
         self.points.albedo = np.where(self.points.surface >= 0, self.points.albedo, 0.0)
         own = np.array([not s.shadows_itself for s in scene] + [True])[self.points.surface]
         self.traced = (~own | (len(scene) > 1)) & (self.points.surface >= 0)  # shadow rays that may meet something
+        self.any_traced = bool(np.any(self.traced))
+        self.self_shadowing = np.array([s.shadows_itself for s in scene] + [True])
 
     def __call__(self, directions) -> np.ndarray:
+        return self.with_gradient(directions, gradient=False)[0]
+
+    def with_gradient(self, directions, gradient: bool = True):
+        """`(rows (P, K), d rows / d w (P, K, 3) or None)` for unit directions `w (K, 3)`: the gradient
+        `mean_s rho/pi * n_s * [n_s.w > 0] V(x_s, w)` (visibility is piecewise constant in `w`)."""
         w = np.atleast_2d(np.asarray(directions, dtype=np.float64))
         w = w / np.linalg.norm(w, axis=1, keepdims=True)
         pts = self.points
         cos = np.maximum(pts.normal @ w.T, 0.0)  # (M, K)
-        lit = np.nonzero((cos > 0) & self.traced[:, None])
-        if len(lit[0]):
+        if self.any_traced:
+            lit = np.nonzero((cos > 0) & self.traced[:, None])
             hit = self.caster.first_surface(pts.position[lit[0]], w[lit[1]])
-            self_shadowing = np.array([s.shadows_itself for s in self.caster.scene] + [True])
             # a surface that cannot shadow itself does not (its smooth normals can point past a facet)
-            blocked = (hit >= 0) & ((hit != pts.surface[lit[0]]) | self_shadowing[hit])
+            blocked = (hit >= 0) & ((hit != pts.surface[lit[0]]) | self.self_shadowing[hit])
             cos[lit[0][blocked], lit[1][blocked]] = 0.0
-        rows = (pts.albedo / np.pi)[:, None] * cos
-        return rows.reshape(*self.shape, -1).mean(axis=1)
+        weight = (pts.albedo / np.pi)[:, None]
+        rows = (weight * cos).reshape(*self.shape, -1).mean(axis=1)
+        if not gradient:
+            return rows, None
+        grad = ((weight * (cos > 0))[:, :, None] * pts.normal[:, None, :]).reshape(*self.shape, len(w), 3).mean(axis=1)
+        return rows, grad
