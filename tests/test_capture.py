@@ -128,6 +128,8 @@ def test_reconstruct_command_writes_the_map_and_its_checks(capture, tmp_path, ca
     results = json.loads((out / "results.json").read_text())
     assert np.linalg.norm(np.asarray(results["pose"]["t"]) - np.asarray(camera.translation)) < 2e-3
     assert hj.io.read_exr(out / "env.exr").shape == (8, 16, 3)
+    lights = results["lights"]  # the map's dominant lights, in the board's frame: the sun above the table
+    assert lights and np.isclose(np.linalg.norm(lights[0]["direction"]), 1, atol=1e-5) and lights[0]["direction"][1] > 0
     spec = hj.load_scene(out / "scene.toml")  # self-contained: the mask and the object beside it
     assert spec.camera.width == 48 and len(spec.scene) == 2 and not spec.scene[1].observe
 

@@ -216,3 +216,11 @@ def test_probe_refuses_bad_input_in_one_line_and_writes_nothing(tmp_path, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
     assert not out.exists()
+
+
+def test_an_8bit_photo_is_decoded_as_srgb_with_a_warning_naming_linear(tmp_path):
+    cv2.imwrite(str(tmp_path / "ball.png"), np.full((8, 8, 3), 128, np.uint8))
+    with pytest.warns(UserWarning, match=r"assumed sRGB-encoded.*--linear"):
+        shot = hj.photo.read_photo(tmp_path / "ball.png")
+    assert shot.radiance.max() == pytest.approx(((128 / 255 + 0.055) / 1.055) ** 2.4, rel=1e-5)
+    assert hj.photo.read_photo(tmp_path / "ball.png", srgb=False).radiance.max() == pytest.approx(128 / 255, rel=1e-5)

@@ -9,7 +9,7 @@ import numpy as np
 from .. import io
 from .. import photo as _photo
 from ..scene import EnvGrid
-from ..solvers import DEFAULT_PRIOR, DEFAULT_RIDGE
+from ..solvers import DEFAULT_PRIOR, DEFAULT_RIDGE, dominant_lights
 from ._common import IMAGE_HELP, PRIORS, _output_folder, _read_capture, _write_cues, capture_options, capture_srgb
 
 
@@ -124,6 +124,7 @@ def reconstruct(args) -> dict:
                   reprojection_error_px=rec.pose.reprojection_error, corners=rec.pose.corners),
         placement=dict(x=p.x, z=p.z, yaw_deg=p.yaw),
         refinement=None if r is None else dict(iou=r.iou, initial_iou=r.initial_iou),
+        lights=dominant_lights(rec.env, grid).to_json()["lights"],  # the map's, in the board's frame
         observed_pixels=int(rec.mask.sum()), observe=rec.observe, object_albedo=rec.object_albedo, seconds=seconds, cues=cue_summary, residual=rec.residual,
         table=dict(roughness=rec.roughness, ior=args.ior if rec.roughness is not None else None,
                    glossy_to_matte_residual=rec.glare),
