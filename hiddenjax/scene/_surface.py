@@ -184,9 +184,9 @@ def _face_normals(tri: np.ndarray) -> np.ndarray:
     return n / np.where(length > 0, length, 1.0)
 
 
-def _corner_normals(mesh: trimesh.Trimesh, face_normals: np.ndarray) -> np.ndarray:
-    """`(F, 3, 3)`: each face corner's vertex normal (the area-weighted mean of the faces around the
-    vertex), flipped where it points against the face's own normal (a mesh wound inconsistently)."""
+def vertex_normals(mesh: trimesh.Trimesh) -> np.ndarray:
+    """`(V, 3)` unit vertex normals: the area-weighted mean of the faces' normals around each vertex
+    (zero where they cancel). `Surface(smooth=True)` shades with them, the Mitsuba export writes them."""
     faces = np.asarray(mesh.faces)
     tri = np.asarray(mesh.vertices, dtype=np.float64)[faces]
     weighted = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # normal times twice the area
@@ -194,8 +194,13 @@ def _corner_normals(mesh: trimesh.Trimesh, face_normals: np.ndarray) -> np.ndarr
     for k in range(3):
         np.add.at(vertex, faces[:, k], weighted)
     length = np.linalg.norm(vertex, axis=1, keepdims=True)
-    vertex = vertex / np.where(length > 0, length, 1.0)
-    corners = vertex[faces]
+    return vertex / np.where(length > 0, length, 1.0)
+
+
+def _corner_normals(mesh: trimesh.Trimesh, face_normals: np.ndarray) -> np.ndarray:
+    """`(F, 3, 3)`: each face corner's vertex normal (`vertex_normals`), flipped where it points against
+    the face's own normal (a mesh wound inconsistently)."""
+    corners = vertex_normals(mesh)[np.asarray(mesh.faces)]
     flip = np.einsum("fkc,fc->fk", corners, face_normals) < 0
     corners = np.where(flip[..., None], -corners, corners)
     degenerate = np.linalg.norm(corners, axis=2) < 0.5  # a vertex whose faces' normals cancel

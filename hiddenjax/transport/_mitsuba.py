@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..scene import Camera, EnvGrid, Scene
+from ..scene._surface import vertex_normals
 from ._point_lights import check_lights
 
 
@@ -79,7 +80,7 @@ def _scene_dict(mi, scene: Scene, camera: Camera, folder: Path, integrator: dict
     """Mitsuba's scene dictionary for our surfaces (PLY files written to `folder`), camera and integrator.
 
     Emitters are the caller's. A glossy surface is Mitsuba's `roughplastic` (GGX, `nonlinear=false`,
-    air outside). Constant albedo or a grey texture (Mitsuba's bitmap, bilinear and
+    air outside); a smooth one carries its vertex normals in its PLY file (Phong-interpolated there too). Constant albedo or a grey texture (Mitsuba's bitmap, bilinear and
     repeating as `Surface`'s; its rows are flipped: Mitsuba puts bitmap row 0 at `v = 0`, ours at
     `v = 1`); a centred pinhole camera with square pixels only.
     """
@@ -99,13 +100,17 @@ def _scene_dict(mi, scene: Scene, camera: Camera, folder: Path, integrator: dict
             reflectance = {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(texture)), "raw": True,
                            "filter_type": "bilinear", "wrap_mode": "repeat"}
         path = folder / f"surface{k}.ply"
-        surface.mesh.export(path)
+        mesh = surface.mesh
+        if surface.smooth:  # Mitsuba interpolates the file's vertex normals: write ours (it would compute others)
+            mesh = mesh.copy()
+            mesh.vertex_normals = vertex_normals(surface.mesh)
+        mesh.export(path, vertex_normal=surface.smooth)
         bsdf = {"type": "diffuse", "reflectance": reflectance}
         if surface.gloss is not None:  # the same material term by term (scene._gloss)
             bsdf = {"type": "roughplastic", "distribution": "ggx", "alpha": surface.gloss.roughness,
                     "int_ior": surface.gloss.ior, "ext_ior": 1.0, "nonlinear": False, "diffuse_reflectance": reflectance}
         shapes[f"surface{k}"] = {
-            "type": "ply", "filename": str(path), "face_normals": True,
+            "type": "ply", "filename": str(path), "face_normals": not surface.smooth,
             # two-sided, as hiddenjax's surfaces are (Embree's normal faces the ray): Mitsuba's diffuse
             # BSDF alone is black from behind, so a mesh wound inward (the teapot) would be black
             "bsdf": {"type": "twosided", "bsdf": bsdf},
