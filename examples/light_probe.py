@@ -74,7 +74,7 @@ def main():
         sun = sun_direction(panorama)
         error = float(np.degrees(np.arccos(np.clip(np.asarray(found.lights.directions[0]) @ sun, -1, 1))))
         truth = grid.downsample(panorama)
-        env = np.asarray(hj.solve_illumination(probe.T, hj.photo._probe._shrink(photo, probe.factor, np.mean)).env)
+        env = np.asarray(hj.solve_illumination(probe.T, probe.averaged(photo)).env)
         ssim = float(hj.metrics.env_errors(env.mean(-1) if env.ndim == 3 else env,
                                            truth.mean(-1) if truth.ndim == 3 else truth, region="all")["ssim_tm"])
         facing = float(sun[2])

@@ -125,7 +125,8 @@ def reconstruct(args) -> dict:
         placement=dict(x=p.x, z=p.z, yaw_deg=p.yaw),
         refinement=None if r is None else dict(iou=r.iou, initial_iou=r.initial_iou),
         lights=dominant_lights(rec.env, grid).to_json()["lights"],  # the map's, in the board's frame
-        observed_pixels=int(rec.mask.sum()), observe=rec.observe, object_albedo=rec.object_albedo, seconds=seconds, cues=cue_summary, residual=rec.residual,
+        observed_pixels=int(rec.mask.sum()), observe=rec.observe, object_albedo=rec.object_albedo, seconds=seconds,
+        cues=cue_summary, residual=rec.residual,
         table=dict(roughness=rec.roughness, ior=args.ior if rec.roughness is not None else None,
                    glossy_to_matte_residual=rec.glare),
         plate=None if rec.plate is None else dict(shift_px=rec.plate.shift_px, corners=rec.plate.pose.corners,

@@ -131,6 +131,10 @@ class Probe:
         camera = Camera.from_opencv(K, _TO_OPENCV, np.zeros(3), small.shape[1], small.shape[0])
         return cls(Scene([Surface(mesh, 1.0, smooth=True)]), camera, small, factor, _grid(grid), mask.shape)
 
+    def averaged(self, photo) -> np.ndarray:
+        """A photo of the view averaged down to `T`'s image (`factor` x `factor` blocks), as `solve` uses it."""
+        return _shrink(np.asarray(photo, dtype=np.float32), self.factor, np.mean)
+
     def solve(self, photo, saturated=None, max_lights: int = 4) -> ProbeResult:
         """The map and the lights of `photo (H, W[, C])` (linear) with its `saturated (H, W)` pixels left out."""
         photo = np.asarray(photo, dtype=np.float32)
@@ -138,7 +142,7 @@ class Probe:
             raise ValueError(f"the photo is {photo.shape[1]}x{photo.shape[0]} but the mask is "
                              f"{self.image_shape[1]}x{self.image_shape[0]}: give the mask of this view")
         saturated = np.zeros(self.image_shape, bool) if saturated is None else np.asarray(saturated, bool)
-        small = _shrink(photo, self.factor, np.mean)
+        small = self.averaged(photo)
         out = _shrink(saturated, self.factor, any)
         observed = self.T.image_to_rows(out)
         if observed.mean() > MAX_SATURATED:

@@ -192,8 +192,9 @@ def reconstruct(
     mask = table_mask(board, camera, saturated=clipped)
     if used_plate is not None:
         mask &= ~_resize_any(table & ~used_plate.valid, width, height)
-    on_object = (silhouette(place(base, placement), camera) > 0.999) & ~clipped  # pixels wholly on the object
+    on_object = None
     if observe != "table":
+        on_object = (silhouette(place(base, placement), camera) > 0.999) & ~clipped  # pixels wholly on the object
         if not np.any(on_object):
             raise ValueError("no pixel of the solve lies wholly on the object: it is too small in the photo for "
                              "observe='object'/'both'; raise the solve's width or photograph it larger")
@@ -214,8 +215,7 @@ def reconstruct(
     if observe == "both":
         T, solution, object_albedo = _solve_object_albedo(T, small, on_object, solution, prior, object_albedo)
     env = np.asarray(solution.env)
-    table_rows = ~T.image_to_rows(on_object) if observe == "both" else None
-    residual = fit_residual(T, small, env, table_rows) if observe != "object" else fit_residual(T, small, env)
+    residual = fit_residual(T, small, env, ~T.image_to_rows(on_object) if observe == "both" else None)
     if used_plate is None and observe != "object" and residual > TEXTURE_RESIDUAL:
         warnings.warn(f"the map leaves {residual:.0%} of the table's pixels unexplained: a table whose albedo "
                       f"varies (wood grain, a print) looks like this; photograph the same view without the object "

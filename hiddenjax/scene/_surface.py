@@ -1,5 +1,6 @@
 """Diffuse surfaces and scenes (docs/conventions.md, "Surfaces")."""
 
+import functools
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -96,14 +97,11 @@ class Surface:
             np.all(np.abs(self.normals @ n0) > 1 - 1e-6) and np.all(np.abs((p - p[0]) @ n0) < 1e-6 * size)
         )
 
-    @property
+    @functools.cached_property
     def shadows_itself(self) -> bool:
-        """Can one point of the surface shadow another? Not when it is planar or closed and convex."""
-        try:
-            return self._shadows_itself
-        except AttributeError:
-            self._shadows_itself = not (self.planar or (self.mesh.is_watertight and self.mesh.is_convex))
-            return self._shadows_itself
+        """Can one point of the surface shadow another? Not when it is planar or closed and convex (the
+        convexity test is costly: asked once per surface)."""
+        return not (self.planar or (self.mesh.is_watertight and self.mesh.is_convex))
 
     def normals_at(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Unit shading normals `(n, 3)` at hits on `faces (n,)` with Embree barycentrics `bary (n, 2)`:

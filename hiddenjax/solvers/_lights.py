@@ -113,13 +113,12 @@ def dominant_lights(env, grid: EnvGrid | None = None, *, max_lights: int = 4, se
     for k in range(len(chosen)):
         cells = within & (owner == k)
         m = (grey[cells, None] * moments[cells]).sum(axis=0)
-        found.append((np.linalg.norm(m), m / max(np.linalg.norm(m), 1e-300), (x[cells] * omega[cells, None]).sum(0),
-                      cells))
-    found.sort(key=lambda f: -f[2].mean())
-    found = [f for f in found if f[2].mean() >= floor * found[0][2].mean()][:max_lights]
+        found.append((m / max(np.linalg.norm(m), 1e-300), (x[cells] * omega[cells, None]).sum(0), cells))
+    found.sort(key=lambda f: -f[1].mean())
+    found = [f for f in found if f[1].mean() >= floor * found[0][1].mean()][:max_lights]
     channels = () if env.ndim == 2 else (env.shape[2],)
-    return Lights(np.stack([f[1] for f in found]), np.stack([f[2].reshape(channels) for f in found]),
-                  np.stack([f[3] for f in found]))
+    return Lights(np.stack([f[0] for f in found]), np.stack([f[1].reshape(channels) for f in found]),
+                  np.stack([f[2] for f in found]))
 
 
 def refine_lights(T: TransportMatrix, scene, camera, image, env, lights: Lights, mask=None,

@@ -10,7 +10,8 @@ For a point `x` with normal `n` and env pixel `j`, the row entry (before `albedo
 
 `V_k` needs an Embree query only when `w_k` points into the bounding cone of an occluder
 (a surface other than a planar or closed convex one the point lies on: those cannot shadow their
-own points); every other sample is visible by construction. The `S` samples are stratified in the pixel and independent per point.
+own points); every other sample is visible by construction. The `S` samples are stratified in
+the pixel and independent per point.
 
 Glossy surfaces (`Surface(roughness=...)`, `scene._gloss`) seen from a view direction `v`: the
 diffuse base weights each direction by `t(n.w) n.w` instead of `n.w` (its unoccluded part by a

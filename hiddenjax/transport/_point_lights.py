@@ -90,10 +90,10 @@ class DistantLightRows:
         self.points = _Points(hits, (pixels[:, None] * S + np.arange(S)).reshape(-1), self.caster.offset, directions)
         # a footprint sample that misses the scene (more samples than T's, on a silhouette) adds nothing
         self.points.albedo = np.where(self.points.surface >= 0, self.points.albedo, 0.0)
-        own = np.array([not s.shadows_itself for s in scene] + [True])[self.points.surface]
-        self.traced = (~own | (len(scene) > 1)) & (self.points.surface >= 0)  # shadow rays that may meet something
+        self.self_shadowing = np.array([s.shadows_itself for s in scene] + [True])  # index -1: a miss
+        # shadow rays that may meet something: another surface, or the point's own if it shadows itself
+        self.traced = (self.self_shadowing[self.points.surface] | (len(scene) > 1)) & (self.points.surface >= 0)
         self.any_traced = bool(np.any(self.traced))
-        self.self_shadowing = np.array([s.shadows_itself for s in scene] + [True])
 
     def __call__(self, directions) -> np.ndarray:
         return self.with_gradient(directions, gradient=False)[0]
