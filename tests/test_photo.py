@@ -295,3 +295,59 @@ def test_commands_fail_in_one_line_and_write_nothing(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and words in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["blank.exr", "board.toml"]
+
+
+# ---- a plain chessboard ---------------------------------------------------------------------------
+CHESSBOARD = photo.Chessboard(inner=(9, 6), square=0.04)
+
+
+def test_chessboard_calibration_and_pose_from_rendered_photos(tmp_path):
+    """A plain chessboard (OpenCV's 9 x 6 inner corners) through the same ray-cast photos and lens:
+    the focal length within 0.5%, the pose's position within 1 mm up to the pattern's half-turn,
+    and the board file round-trips through `load_board`."""
+    rng = np.random.default_rng(1)
+    cams, images = [], []
+    for origin, up in zip(ORIGINS, UPS):
+        cam = hj.Camera.look_at(origin, (0, 0, 0), up, fov=FOV, width=WIDTH, height=HEIGHT)
+        image = photo.render_board_photo(CHESSBOARD, cam, distortion=DISTORTION, samples=3)
+        images.append(image + rng.normal(0, 0.01, image.shape).astype(np.float32))
+        cams.append(cam)
+    intr = photo.calibrate(CHESSBOARD, images)
+    assert abs(intr.focal[0] / true_focal() - 1) < 0.005 and abs(intr.focal[1] / true_focal() - 1) < 0.005
+    assert intr.rms < 0.5 and intr.views == 8
+    pose = photo.board_pose(CHESSBOARD, images[1], intr)
+    assert np.linalg.norm(pose.origin - np.asarray(cams[1].origin)) < 1e-3  # the centre is the same either way
+    # the frame is OpenCV's corner order: the true one or its half-turn about the board's normal (y)
+    half = np.diag([-1.0, 1.0, -1.0])
+    assert min(rotation_angle(pose.R, cams[1].rotation), rotation_angle(pose.R @ half, cams[1].rotation)) < 0.2
+    CHESSBOARD.save(tmp_path / "chess.toml")
+    assert photo.load_board(tmp_path / "chess.toml") == CHESSBOARD
+    BOARD.save(tmp_path / "charuco.toml")
+    assert photo.load_board(tmp_path / "charuco.toml") == BOARD
+    assert CHESSBOARD.image(dpi=254).shape == (2800, 4000)  # 10 x 7 squares of 4 cm at 100 px/cm
+
+
+def test_chessboard_files_and_mismatched_boards_are_explained(tmp_path, views, capsys):
+    """A board file of an unknown kind or with a chessboard's keys wrong is refused naming both kinds;
+    calibrating ChArUco photos with a chessboard file of the wrong size says which boards exist."""
+    (tmp_path / "odd.toml").write_text('[board]\nkind = "circles"\nsquare = 0.04\n')
+    (tmp_path / "chess.toml").write_text('[board]\nkind = "chessboard"\nsquare = 0.04\n')
+    with pytest.raises(ValueError, match="plain chessboard"):
+        photo.load_board(tmp_path / "odd.toml")
+    with pytest.raises(ValueError, match="needs .'inner'."):
+        photo.load_board(tmp_path / "chess.toml")
+    with pytest.raises(ValueError, match="read it with load_board"):
+        photo.Board.load(tmp_path / "odd.toml")
+    with pytest.raises(ValueError, match="at least 2 x 2"):
+        photo.Chessboard(inner=(1, 6), square=0.04)
+    photo.Chessboard(inner=(5, 5), square=0.04).save(tmp_path / "wrong.toml")
+    names = []
+    for k, image in enumerate(views[1][:3]):
+        names.append(str(tmp_path / f"view{k}.exr"))
+        hj.io.write_exr(names[-1], image)
+    assert main(["calibrate", str(tmp_path / "wrong.toml"), *names, "-o", str(tmp_path / "c.toml")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "5x5 inner corners" in err and "ChArUco board" in err and "kind = " in err, err
+    assert not (tmp_path / "c.toml").exists()
+    assert main(["board", "-o", str(tmp_path / "cb.png"), "--chessboard", "--squares", "10", "7", "--dpi", "100"]) == 0
+    assert photo.load_board(tmp_path / "cb.toml") == photo.Chessboard(inner=(9, 6), square=0.025)

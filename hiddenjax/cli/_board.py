@@ -1,4 +1,5 @@
-"""`hiddenjax board` and `hiddenjax calibrate`: the printed ChArUco board and the camera's intrinsics."""
+"""`hiddenjax board` and `hiddenjax calibrate`: the printed board (ChArUco or a plain chessboard) and the
+camera's intrinsics."""
 
 from pathlib import Path
 
@@ -22,11 +23,16 @@ def add_parsers(sub) -> None:
     p.add_argument("--marker", type=float, default=0.019, help="marker side in metres (default 0.019)")
     p.add_argument("--dictionary", default="4X4_50", help="ArUco dictionary (default 4X4_50)")
     p.add_argument("--dpi", type=float, default=300.0, help="dots per inch (default 300)")
+    p.add_argument("--chessboard", action="store_true",
+                   help="a plain chessboard of --squares squares instead (no markers; for calibration only: its "
+                        "pose has no marked corner)")
     p.set_defaults(run=board)
     p = sub.add_parser("calibrate", help="camera intrinsics from photos of the board",
                        description="Focal lengths, principal point and lens distortion (OpenCV) from 3 or more photos "
-                                   "of the printed board taken from different angles with one camera setting.")
-    p.add_argument("board", help="board description (.toml from `hiddenjax board`)")
+                                   "of the printed board taken from different angles with one camera setting. The "
+                                   "board is a ChArUco board or a plain chessboard (a board file with kind = "
+                                   "\"chessboard\", inner = [cols, rows] inner corners and square in metres).")
+    p.add_argument("board", help="board description (.toml from `hiddenjax board`, or a chessboard's)")
     p.add_argument("photos", nargs="+", help="photos of the board: " + IMAGE_HELP)
     p.add_argument("-o", "--output", required=True, help="output camera .toml")
     p.add_argument("--sheet", help="also a PNG contact sheet of the corners found in each photo")
@@ -37,7 +43,10 @@ def board(args) -> None:
     png = _output(args.output, (".png",))
     pdf = None if args.pdf is None else _output(args.pdf, (".pdf",))
     toml = png.with_suffix(".toml") if args.toml is None else _output(args.toml, (".toml",))
-    b = _photo.Board(squares=tuple(args.squares), square=args.square, marker=args.marker, dictionary=args.dictionary)
+    if args.chessboard:
+        b = _photo.Chessboard(inner=(args.squares[0] - 1, args.squares[1] - 1), square=args.square)
+    else:
+        b = _photo.Board(squares=tuple(args.squares), square=args.square, marker=args.marker, dictionary=args.dictionary)
     image = b.image(dpi=args.dpi)
     io.write_png(png, image)
     if pdf is not None:
@@ -51,8 +60,8 @@ def board(args) -> None:
 def calibrate(args) -> None:
     out = _output(args.output, (".toml",))
     sheet = None if args.sheet is None else _output(args.sheet, (".png",))
-    b = _photo.Board.load(args.board)
-    images = [io.read_image(p) for p in args.photos]
+    b = _photo.load_board(args.board)
+    images = [_photo.read_board_photo(p) for p in args.photos]
     intr = _photo.calibrate(b, images, names=args.photos)
     if sheet is not None:
         _write_detections(sheet, b, images, args.photos)

@@ -1,4 +1,4 @@
-"""Real captures: a printed ChArUco board, camera calibration, the board's pose, linear radiance photos.
+"""Real captures: a printed ChArUco board (or a plain chessboard), camera calibration, the board's pose, linear radiance photos.
 
 The path from a camera to a map: `hiddenjax board` (print it), photograph the board from several
 angles (`calibrate`), photograph the object standing on it (`board_pose` -> `BoardPose.camera`),
@@ -7,6 +7,8 @@ probe: `Probe.sphere(mask)` or `Probe.mesh(...)`, then `probe.solve(photo)`.
 """
 
 from ._board import Board as Board
+from ._board import Chessboard as Chessboard
+from ._board import load_board as load_board
 from ._board import write_board_pdf as write_board_pdf
 from ._calibration import BoardPose as BoardPose
 from ._calibration import Detection as Detection
@@ -15,6 +17,7 @@ from ._calibration import board_pose as board_pose
 from ._calibration import calibrate as calibrate
 from ._calibration import detect as detect
 from ._calibration import draw_detection as draw_detection
+from ._calibration import read_board_photo as read_board_photo
 from ._synthetic import render_board_photo as render_board_photo
 from ._radiance import RESPONSES as RESPONSES
 from ._radiance import Photo as Photo

@@ -1,4 +1,5 @@
-"""Camera intrinsics and the board's pose from photos of a ChArUco board (OpenCV's aruco module).
+"""Camera intrinsics and the board's pose from photos of a ChArUco board (OpenCV's aruco module) or
+of a plain chessboard (OpenCV's sector-based chessboard detector).
 
 Pixel coordinates here are OpenCV's (pixel centres at integers); `BoardPose.camera` converts to
 the project's convention (centres at +.5) through `Camera.from_opencv`.
@@ -13,9 +14,9 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from ..io import read_toml, tonemap, write_text
+from ..io import read_image, read_stored, read_toml, tonemap, write_text
 from ..scene import Camera
-from ._board import BOARD_TO_WORLD, Board
+from ._board import BOARD_KINDS, BOARD_TO_WORLD, Board, Chessboard
 
 
 class Detection(NamedTuple):
@@ -141,11 +142,37 @@ def _grey8(image) -> np.ndarray:
     return tonemap(a)
 
 
-def detect(board: Board, image) -> Detection:
-    """Find the board's markers and inner corners (ChArUco interpolation, subpixel) in a photo."""
+def read_board_photo(path) -> np.ndarray:
+    """A photo for the board detectors: an 8-bit file's pixels as stored (uint8, what OpenCV's own
+    tools see), anything else as `io.read_image` returns it (tone-mapped for the detector)."""
+    stored, bits = read_stored(path)
+    if bits == 8:
+        return np.round(stored * 255).astype(np.uint8)
+    return read_image(path)
+
+
+def detect(board: "Board | Chessboard", image) -> Detection:
+    """Find the board's inner corners in a photo: a ChArUco board's markers, then its corners by
+    interpolation (subpixel); a chessboard's whole pattern (OpenCV's `findChessboardCorners` and
+    `cornerSubPix`, as in its calibration tutorial; failing that the sector-based detector) or none of it."""
     grey = _grey8(image)
     if grey.max() == grey.min():
         raise ValueError("the photo is blank (one value everywhere); no board can be found in it")
+    if isinstance(board, Chessboard):
+        size = (grey.shape[1], grey.shape[0])
+        pattern = tuple(int(v) for v in board.inner)
+        found, corners = cv2.findChessboardCorners(grey, pattern)
+        if found:  # OpenCV's recipe: a window of half-size 11, or a quarter of the squares where they are smaller
+            corners = corners.reshape(-1, 2)
+            spacing = np.median(np.linalg.norm(np.diff(corners.reshape(pattern[1], pattern[0], 2), axis=1), axis=-1))
+            half = int(np.clip(spacing / 4, 2, 11))
+            corners = cv2.cornerSubPix(grey, corners.astype(np.float32), (half, half), (-1, -1),
+                                       (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-3))
+        else:
+            found, corners = cv2.findChessboardCornersSB(grey, pattern, flags=cv2.CALIB_CB_ACCURACY)
+        if not found:
+            return Detection(np.zeros((0, 2)), np.zeros((0,), dtype=int), size)
+        return Detection(corners.reshape(-1, 2).astype(np.float64), np.arange(len(corners.reshape(-1, 2))), size)
     detector = cv2.aruco.CharucoDetector(board.opencv())
     corners, ids, _, _ = detector.detectBoard(grey)
     size = (grey.shape[1], grey.shape[0])
@@ -154,15 +181,22 @@ def detect(board: Board, image) -> Detection:
     return Detection(corners.reshape(-1, 2).astype(np.float64), ids.reshape(-1).astype(int), size)
 
 
-def _object_points(board: Board, ids) -> np.ndarray:
-    return board.opencv().getChessboardCorners()[ids].astype(np.float64)
+def _object_points(board: "Board | Chessboard", ids) -> np.ndarray:
+    return board.board_points()[ids]
 
 
-def calibrate(board: Board, images, min_corners: int = 8, names=None) -> Intrinsics:
-    """Intrinsics from several photos of the board (`cv2.calibrateCamera` on the ChArUco corners).
+def _describe(board: "Board | Chessboard") -> str:
+    if isinstance(board, Chessboard):
+        return f"a chessboard of {board.inner[0]}x{board.inner[1]} inner corners"
+    return f"a ChArUco board of {board.squares[0]}x{board.squares[1]} squares, {board.dictionary}"
 
-    Photos with fewer than `min_corners` corners are skipped; at least three usable photos, from
-    different angles, are needed (one fronto-parallel view cannot fix the focal length).
+
+def calibrate(board: "Board | Chessboard", images, min_corners: int = 8, names=None) -> Intrinsics:
+    """Intrinsics from several photos of the board (`cv2.calibrateCamera` on its inner corners).
+
+    Photos with fewer than `min_corners` corners are skipped (a chessboard is found whole or not at
+    all); at least three usable photos, from different angles, are needed (one fronto-parallel
+    view cannot fix the focal length).
     """
     images = list(images)
     names = [f"photo {k}" for k in range(len(images))] if names is None else list(names)
@@ -183,13 +217,14 @@ def calibrate(board: Board, images, min_corners: int = 8, names=None) -> Intrins
         raise ValueError(
             f"calibration needs at least 3 photos showing the board with >= {min_corners} corners, got {len(objects)}"
             + (f"; too few corners in {', '.join(skipped)}" if skipped else "")
-            + "; check that the board file matches the printed board and photograph it from several angles"
+            + f"; check that the board file ({_describe(board)}) matches the printed board and photograph it "
+            f"from several angles. A board file describes {BOARD_KINDS}"
         )
     rms, K, dist, _, _ = cv2.calibrateCamera(objects, points, size, None, None)
     return Intrinsics(K, dist.reshape(-1)[:5], size[0], size[1], float(rms), len(objects))
 
 
-def board_pose(board: Board, image, intrinsics: Intrinsics, min_corners: int = 6) -> BoardPose:
+def board_pose(board: "Board | Chessboard", image, intrinsics: Intrinsics, min_corners: int = 6) -> BoardPose:
     """The board's pose in one photo (planar PnP, then Levenberg-Marquardt on the reprojection error).
 
     `R, t` map world points (board centre at the origin, +y up) to OpenCV camera coordinates.
@@ -198,7 +233,7 @@ def board_pose(board: Board, image, intrinsics: Intrinsics, min_corners: int = 6
     return _pose_from_detection(board, d, intrinsics, min_corners)
 
 
-def _pose_from_detection(board: Board, d: "Detection", intrinsics: Intrinsics, min_corners: int) -> BoardPose:
+def _pose_from_detection(board: "Board | Chessboard", d: "Detection", intrinsics: Intrinsics, min_corners: int) -> BoardPose:
     if d.image_size != (intrinsics.width, intrinsics.height):
         raise ValueError(
             f"the photo is {d.image_size[0]}x{d.image_size[1]} but the intrinsics are for "
@@ -207,8 +242,8 @@ def _pose_from_detection(board: Board, d: "Detection", intrinsics: Intrinsics, m
     if len(d.ids) < min_corners:
         raise ValueError(
             f"found {len(d.ids)} board corners, need >= {min_corners}: is the board in the photo, well lit and "
-            f"in focus, and does the board file ({board.squares[0]}x{board.squares[1]} squares, {board.dictionary}) "
-            f"match the printed board?"
+            f"in focus, and does the board file ({_describe(board)}) match the printed board? A board file "
+            f"describes {BOARD_KINDS}"
         )
     obj = _object_points(board, d.ids)
     ok, rvec, tvec = cv2.solvePnP(obj, d.corners, intrinsics.K, intrinsics.distortion, flags=cv2.SOLVEPNP_IPPE)
