@@ -31,7 +31,10 @@ image = "mask.png"          # non-zero pixels are kept (intersected with the obs
 
 [[surface]]                 # one table per surface, in order
 mesh = "plane"              # a bundled fixture ('plane', 'teapot', 'sphere', 'coded_aperture')
-                            # or a mesh file path (OBJ, PLY, STL, GLB, ...)
+                            # or a mesh file path (OBJ, PLY, STL, GLB, ...); or instead of mesh:
+# shape = "cylinder"        # a primitive at its true size, standing on y = 0, axis +y, centred on
+# radius = 0.004            # x = z = 0: cylinder / cone (radius, height), box (extent = [x, y, z]),
+# height = 0.076            # sphere (radius), plane (extent = [x, z], in y = 0)
 albedo = 0.8                # in [0, 1]: a number, a per-face list, or a grey texture image path
 albedo_srgb = true          # texture images are sRGB-encoded (default true; false: linear)
 observe = true              # its pixels are rows of A (false: it only casts shadows)
@@ -45,7 +48,8 @@ translation = [0, 0, 0]     # 4. metres
 ```
 
 Relative paths are resolved against the scene file's folder. The fixture 'plane' is the unit
-square in `y = 0` (normal +y, with UVs); scale it to the table size.
+square in `y = 0` (normal +y, with UVs); scale it to the table size, or give `shape = "plane"`
+with its `extent`.
 """
 
 from pathlib import Path
@@ -54,8 +58,9 @@ from typing import Any, NamedTuple
 import numpy as np
 import trimesh
 
-from .scene import FIXTURES, Camera, EnvGrid, Scene, Surface, check_gloss, ground_plane, load_mesh
+from .scene import FIXTURES, PRIMITIVES, Camera, EnvGrid, Scene, Surface, check_gloss, ground_plane, load_mesh
 from .scene import fixture as _fixture
+from .scene import primitive as _primitive
 from .transport import DEFAULT_PIXEL_SAMPLES, DEFAULT_SAMPLES
 from .io import read_image, read_toml
 
@@ -189,21 +194,12 @@ def load_scene(path) -> SceneFile:
 
 
 def _surface(s: _Table) -> Surface:
-    name = s.get("mesh", required=True)
-    if not isinstance(name, str) or not name:
-        s.fail("mesh", f"must be a fixture name {MESH_FIXTURES} or a mesh file path, got {name!r}")
-    if name == "plane":
-        mesh = ground_plane(1.0)
-    elif name in FIXTURES:
-        mesh = _fixture(name)
+    if s.has("shape") and s.has("mesh"):
+        s.fail("shape", "and mesh are alternatives; give one")
+    if s.has("shape"):
+        mesh = _shape(s)
     else:
-        file = s.path.parent / name
-        if not file.is_file():
-            s.fail("mesh", f"{name!r} is neither a fixture {MESH_FIXTURES} nor a file (looked for {file})")
-        try:
-            mesh = load_mesh(file).copy()
-        except ValueError as e:
-            s.fail("mesh", f"cannot be loaded: {e}")
+        mesh = _mesh(s)
     _transform(s.table("transform"), mesh)
 
     albedo = s.get("albedo", 0.8)
@@ -229,6 +225,44 @@ def _surface(s: _Table) -> Surface:
         return Surface(mesh, albedo, observe=observe, roughness=roughness, ior=ior, smooth=smooth)
     except ValueError as e:
         s.fail("albedo", f"is invalid: {e}")
+
+
+def _mesh(s: _Table) -> trimesh.Trimesh:
+    """A `mesh = ...` surface: a bundled fixture or a mesh file."""
+    name = s.get("mesh", required=True)
+    if not isinstance(name, str) or not name:
+        s.fail("mesh", f"must be a fixture name {MESH_FIXTURES} or a mesh file path (or give shape = one of "
+                       f"{list(PRIMITIVES)}), got {name!r}")
+    if name == "plane":
+        mesh = ground_plane(1.0)
+    elif name in FIXTURES:
+        mesh = _fixture(name)
+    else:
+        file = s.path.parent / name
+        if not file.is_file():
+            s.fail("mesh", f"{name!r} is neither a fixture {MESH_FIXTURES} nor a file (looked for {file})")
+        try:
+            mesh = load_mesh(file).copy()
+        except ValueError as e:
+            s.fail("mesh", f"cannot be loaded: {e}")
+    return mesh
+
+
+def _shape(s: _Table) -> trimesh.Trimesh:
+    """A `shape = ...` primitive with its size keys (`hj.scene.primitive`)."""
+    shape = s.get("shape")
+    if shape not in PRIMITIVES:
+        s.fail("shape", f"must be one of {list(PRIMITIVES)}, got {shape!r}")
+    sizes = {}
+    for key in PRIMITIVES[shape]:
+        if key == "extent":
+            sizes[key] = s.array(key, (2,) if shape == "plane" else (3,))
+        else:
+            sizes[key] = s.number(key)
+    try:
+        return _primitive(shape, **sizes)
+    except ValueError as e:
+        s.fail(PRIMITIVES[shape][0], f"is invalid: {e}")
 
 
 def _transform(t: _Table, mesh: trimesh.Trimesh) -> None:

@@ -1,7 +1,10 @@
 """`hiddenjax lights`: point lights from the shadows in a photo of a known scene."""
 
 import json
+import sys
 import time
+import warnings
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -31,9 +34,40 @@ def add_parsers(sub) -> None:
                                        "false), for a table whose albedo is not the scene file's (a texture): the "
                                        "fit uses the photo's ratio to it; " + IMAGE_HELP)
     p.add_argument("--no-polish", action="store_true", help="the search and the soft sigmoid fit only (faster, coarser)")
+    p.add_argument("--width", type=int, help="fit at this many pixels across: the photo is area-averaged and the "
+                                             "scene's camera rescaled to it (default: the scene file's camera width; "
+                                             "a photo of another size with the same aspect ratio is resampled)")
+    p.add_argument("--shading", choices=("smooth", "none"),
+                   help="smooth: fit the photo's ratio to its own smooth brightness field (vignetting, the tone "
+                        "curve, a falloff the scene does not know), then each light's distance from the falloff "
+                        "with the tone curve and vignetting fitted; none: the photo as calibrated radiance. Default: "
+                        "smooth for 8/16-bit photos (a camera's), none for EXR/HDR and with --reference")
+    p.add_argument("--clearance", type=float,
+                   help="metres: leave out the pixels this close to the objects' modelled outline (a real object "
+                        "a few mm from where the scene puts it must not pass for shadow); default 0.005 for 8/16-bit "
+                        "photos, 0 for EXR/HDR")
+    p.add_argument("--within", type=float, metavar="METRES",
+                   help="without --init: search for the lights within this distance of the objects (default: a "
+                        "few object sizes around them)")
     p.add_argument("--png", help="also write a picture: the photo, the fitted image and their difference")
     photo_options(p)
     p.set_defaults(run=lights)
+
+
+def _fit_size(camera, image, width, name):
+    """`(camera, image)` at the fit's size: `width` pixels across (default the camera's), the photo
+    area-averaged to it and the camera rescaled (`Camera.resized`); the aspect ratios must agree."""
+    H, W = image.shape[:2]
+    width = camera.width if width is None else int(width)
+    if abs((W / H) / (camera.width / camera.height) - 1) > 0.01:
+        raise ValueError(f"{name} is {W}x{H} pixels but the scene file's camera is {camera.width}x{camera.height}, "
+                         f"another aspect ratio; crop the photo to {camera.width}:{camera.height} or fix the camera")
+    if not 8 <= width <= W:
+        raise ValueError(f"--width must be between 8 and the photo's {W} pixels, got {width}")
+    height = int(round(width * camera.height / camera.width))
+    if (W, H) != (width, height):
+        image = cv2.resize(np.asarray(image, np.float32), (width, height), interpolation=cv2.INTER_AREA)
+    return (camera if (camera.width, camera.height) == (width, height) else camera.resized(width, height)), image
 
 
 def lights(args) -> dict:
@@ -41,11 +75,17 @@ def lights(args) -> dict:
     out = _output(args.output, (".json",))
     png = _output(args.png, (".png",)) if args.png else None
     spec = load_scene(args.scene)
-    camera = spec.camera
     image = io.read_image(args.image, srgb=args.srgb)
-    if image.shape[:2] != (camera.height, camera.width):
-        raise ValueError(f"{args.image} is {image.shape[1]}x{image.shape[0]} pixels but the scene file's camera is "
-                         f"{camera.width}x{camera.height}; use the photo the scene file describes")
+    camera, image = _fit_size(spec.camera, image, args.width, args.image)
+    calibrated = Path(args.image).suffix.lower() in io.HDR_SUFFIXES
+    shading = args.shading or ("none" if calibrated or args.reference is not None else "smooth")
+    clearance = args.clearance if args.clearance is not None else (0.0 if calibrated else _shadows.OBJECT_MARGIN)
+    if not (np.isfinite(clearance) and clearance >= 0):
+        raise ValueError(f"--clearance must be a distance >= 0 in metres, got {clearance}")
+    if shading == "smooth" and args.reference is not None:
+        raise ValueError("--shading smooth stands in for a --reference photo; give one of them")
+    if shading == "smooth" and args.no_polish:
+        raise ValueError("--shading smooth needs the polish (it fits the photo's ratio to its shading); drop --no-polish")
     if not np.all(np.isfinite(image)):
         raise ValueError(f"{args.image} contains NaN or infinite pixels; fix or mask them first")
     reference = None
@@ -53,6 +93,8 @@ def lights(args) -> dict:
         if args.no_polish:
             raise ValueError("--reference needs the polish (it fits the photo's ratio to the reference); drop --no-polish")
         reference = io.read_image(args.reference, srgb=args.srgb)
+        if reference.shape[:2] != image.shape[:2]:
+            reference = _fit_size(spec.camera, reference, args.width, args.reference)[1]
         if reference.shape != image.shape:
             raise ValueError(f"{args.reference} has shape {reference.shape} but {args.image} has {image.shape}; the "
                              "reference is the same view, taken without the occluders")
@@ -67,11 +109,29 @@ def lights(args) -> dict:
     if count < 1:
         raise ValueError(f"--count must be at least 1, got {count}")
     mask = spec.transport.get("mask")
+    if mask is not None and mask.shape != image.shape[:2]:
+        mask = cv2.resize(mask.astype(np.float32), (camera.width, camera.height), interpolation=cv2.INTER_AREA) > 0.999
+    if clearance > 0:
+        clear = _shadows.object_clearance(spec.scene, camera, clearance)
+        mask = clear if mask is None else mask & clear
+    box = None
+    if args.within is not None:
+        if init is not None:
+            raise ValueError("--within bounds the search without a start; with --init use --reach")
+        if not (np.isfinite(args.within) and args.within > 0):
+            raise ValueError(f"--within must be a positive distance in metres, got {args.within}")
+        box = _shadows.search_box_within(spec.scene, args.within)
     t0 = time.perf_counter()
     shadows = _shadows.ShadowScene.from_scene(spec.scene, camera, mask)
-    fit = _shadows.fit_lights(image, spec.scene, camera, init, count=count, reach=args.reach,
-                              polish=not args.no_polish, mask=mask, shadows=shadows, reference=reference)
+    with warnings.catch_warnings():  # fit.warnings are printed below, once
+        warnings.simplefilter("ignore", UserWarning)
+        fit = _shadows.fit_lights(image, spec.scene, camera, init, count=count, reach=args.reach,
+                                  polish=not args.no_polish, mask=mask, shadows=shadows, reference=reference,
+                                  shading=None if shading == "none" else shading, box=box,
+                                  clearance=clearance or None)
     seconds = time.perf_counter() - t0
+    if shading == "smooth":  # the picture's model: the photo's smooth shading times the ratio, as with a reference
+        reference = _shadows.smooth_shading(image, np.asarray(shadows.pixels))
     grey = image.mean(axis=-1) if image.ndim == 3 else image
     model = np.asarray(render_point_lights(spec.scene, camera, fit.positions, fit.intensities, pixel_samples=4))
     model = model + fit.ambient
@@ -87,10 +147,15 @@ def lights(args) -> dict:
     fitted[np.asarray(shadows.pixels)] = 1
     inner = cv2.erode(fitted.reshape(grey.shape), np.ones((3, 3), np.uint8)).astype(bool)
     residual = float(np.sqrt(np.mean((model[inner] - grey[inner]) ** 2) / np.mean(grey[inner] ** 2)))
+    seen = [dict(direction=u["direction"].tolist(), distance=u["distance"], from_point=u["anchor"].tolist(),
+                 angle_95=u["angle"], distance_95=None if u["interval"] is None else u["interval"].tolist())
+            for u in _shadows.light_uncertainty(fit, spec.scene)]
     results = dict(positions=fit.positions.tolist(), intensities=fit.intensities.tolist(), ambient=fit.ambient,
                    channel_intensities=None if fit.channel_intensities is None else fit.channel_intensities.tolist(),
                    channel_ambient=None if fit.channel_ambient is None else fit.channel_ambient.tolist(),
-                   relative_rms_residual=residual, residual_pixels=int(inner.sum()), seconds=round(seconds, 2))
+                   lights=seen, shading=shading, clearance=clearance, size=[camera.width, camera.height],
+                   warnings=list(fit.warnings), relative_rms_residual=residual, residual_pixels=int(inner.sum()),
+                   seconds=round(seconds, 2))
     if png is not None:
         white = float(np.percentile(grey, 99))
         io.contact_sheet(png, [("photo", grey, "radiance", white),
@@ -98,8 +163,13 @@ def lights(args) -> dict:
                                ("|fitted - photo|", np.where(inner, np.abs(model - grey), 0.0), "map")],
                          height=200, columns=3)
     io.write_text(out, json.dumps(results, indent=2))
-    for k, (p, i) in enumerate(zip(fit.positions, fit.intensities)):
-        print(f"light {k}: ({p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}) m, {i:.4g} W/sr")
+    for k, (p, i, u) in enumerate(zip(fit.positions, fit.intensities, seen)):
+        spread = "" if u["angle_95"] is None else (f"; seen from the objects: {u['distance']:.3f} m away (95%: "
+                                                    f"{u['distance_95'][0]:.3f}-{u['distance_95'][1]:.3f}), "
+                                                    f"direction within {u['angle_95']:.1f} deg")
+        print(f"light {k}: ({p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}) m, {i:.4g} W/sr" + spread)
+    for note in fit.warnings:
+        print(f"hiddenjax lights: warning: {note}", file=sys.stderr)
     print(f"ambient {fit.ambient:.4g}; residual {100 * residual:.1f}% RMS of the photo over {inner.sum()} pixels; "
           f"{seconds:.1f} s; wrote {out}" + (f" and {png}" if png else ""))
     return results

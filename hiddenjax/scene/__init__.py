@@ -4,7 +4,10 @@ from ._camera import Camera as Camera
 from ._fixtures import FIXTURES as FIXTURES
 from ._fixtures import coded_aperture as coded_aperture
 from ._fixtures import fixture as fixture
+from ._fixtures import ground_plane as ground_plane
+from ._fixtures import PRIMITIVES as PRIMITIVES
 from ._fixtures import mura_pattern as mura_pattern
+from ._fixtures import primitive as primitive
 from ._fixtures import sphere as sphere
 from ._fixtures import teapot as teapot
 from ._gloss import Gloss as Gloss
@@ -16,7 +19,6 @@ from ._grid import rotate_azimuth as rotate_azimuth
 from ._setups import Setup as Setup
 from ._setups import box_on_floor as box_on_floor
 from ._setups import doorways as doorways
-from ._setups import ground_plane as ground_plane
 from ._setups import object_on_plane as object_on_plane
 from ._setups import wood_texture as wood_texture
 from ._sky import procedural_sky as procedural_sky

@@ -88,6 +88,21 @@ class Camera(eqx.Module):
             height=int(height),
         )
 
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same camera for its image resampled to `width x height` pixels (the same field of view).
+
+        Pixel edges scale with the image (`(row, col) -> (row * height' / height, col * width' / width)`),
+        so `fx, cx` scale by `width' / width` and `fy, cy` by `height' / height`. The aspect ratio must
+        stay within 1%: crop the photo first otherwise.
+        """
+        _check_size(width, height)
+        sx, sy = width / self.width, height / self.height
+        if abs(sx / sy - 1) > 0.01:
+            raise ValueError(f"cannot resize a {self.width}x{self.height} camera to {width}x{height}: the aspect "
+                             f"ratio changes; crop the photo to {self.width}:{self.height} first")
+        intr = np.asarray(self.intrinsics, np.float64) * np.array([sx, sy, sx, sy])
+        return Camera(host_array(intr, np.float32), self.rotation, self.translation, int(width), int(height))
+
     @property
     def origin(self):
         """Centre of projection in world coordinates, `(3,)`."""

@@ -1,7 +1,9 @@
-"""Procedural occluders (no third-party meshes): a teapot-like object, a sphere, a MURA mask plate.
+"""Procedural occluders (no third-party meshes): a teapot-like object, a sphere, a MURA mask plate,
+and primitives of a given size (a pencil, a cup, a book, a table top).
 
-All are built in a unit frame, +y up, resting on `y = 0`; `object_on_plane` rescales them.
-`data_fixtures/make_fixtures.py` writes them to PLY files.
+All are built +y up, resting on `y = 0`; the fixtures in a unit frame (`object_on_plane` rescales
+them), the primitives at their true size in metres. `data_fixtures/make_fixtures.py` writes the
+fixtures to PLY files.
 """
 
 import numpy as np
@@ -93,3 +95,71 @@ def fixture(name: str) -> trimesh.Trimesh:
     if name not in FIXTURES:
         raise ValueError(f"unknown fixture {name!r}; choose one of {sorted(FIXTURES)}")
     return FIXTURES[name]()
+
+
+def ground_plane(size: float, height: float = 0.0) -> trimesh.Trimesh:
+    """A `size x size` square in the plane `y = height`, centred on the origin, normal +y, with UVs."""
+    h = size / 2
+    vertices = np.array([[-h, height, -h], [h, height, -h], [h, height, h], [-h, height, h]])
+    faces = np.array([[0, 2, 1], [0, 3, 2]])
+    uv = np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]])
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    mesh.visual = trimesh.visual.TextureVisuals(uv=uv)
+    return mesh
+
+
+PRIMITIVES = {  # shape -> its size keys (metres)
+    "cylinder": ("radius", "height"),
+    "cone": ("radius", "height"),
+    "box": ("extent",),
+    "sphere": ("radius",),
+    "plane": ("extent",),
+}
+
+
+def primitive(shape: str, *, radius: float | None = None, height: float | None = None, extent=None,
+              sections: int = 48) -> trimesh.Trimesh:
+    """A closed primitive at its true size, standing on `y = 0` with its axis along +y, centred on x = z = 0.
+
+    - `"cylinder"`, `"cone"`: `radius` and `height` (the cone's apex at `y = height`), `sections`
+      segments around;
+    - `"box"`: `extent = (x, y, z)`;
+    - `"sphere"`: `radius` (an icosphere of 2,562 vertices, resting on its lowest point);
+    - `"plane"`: `extent = (x, z)`, a rectangle in `y = 0` with normal +y and UVs (one-sided, like
+      `ground_plane`).
+
+    Place it with a scene file's `[surface.transform]` or `mesh.apply_transform`.
+    """
+    if shape not in PRIMITIVES:
+        raise ValueError(f"unknown primitive {shape!r}; use one of {', '.join(PRIMITIVES)}")
+    given = {"radius": radius, "height": height, "extent": extent}
+    missing = [k for k in PRIMITIVES[shape] if given[k] is None]
+    extra = [k for k, v in given.items() if v is not None and k not in PRIMITIVES[shape]]
+    if missing or extra:
+        raise ValueError(f"a {shape} takes {' and '.join(PRIMITIVES[shape])}"
+                         + (f"; {', '.join(missing)} missing" if missing else "")
+                         + (f"; {', '.join(extra)} is not one of its sizes" if extra else ""))
+    for key in ("radius", "height"):
+        if given[key] is not None and not (np.isfinite(given[key]) and given[key] > 0):
+            raise ValueError(f"a {shape}'s {key} must be positive metres, got {given[key]}")
+    if extent is not None:
+        extent = np.asarray(extent, dtype=np.float64).reshape(-1)
+        count = 2 if shape == "plane" else 3
+        if extent.shape != (count,) or not np.all(np.isfinite(extent) & (extent > 0)):
+            raise ValueError(f"a {shape}'s extent must be {count} positive lengths in metres, got {extent.tolist()}")
+    if sections < 3:
+        raise ValueError(f"sections must be >= 3, got {sections}")
+    if shape == "plane":
+        mesh = ground_plane(1.0)
+        mesh.apply_scale([extent[0], 1.0, extent[1]])
+        return mesh
+    if shape == "cylinder":
+        mesh = _y_up(trimesh.creation.cylinder(radius=radius, height=height, sections=sections))
+    elif shape == "cone":
+        mesh = _y_up(trimesh.creation.cone(radius=radius, height=height, sections=sections))
+    elif shape == "box":
+        mesh = trimesh.creation.box(extents=extent)
+    else:
+        mesh = trimesh.creation.icosphere(subdivisions=4, radius=radius)
+    mesh.apply_translation([0, -mesh.bounds[0, 1], 0])
+    return mesh

@@ -7,24 +7,13 @@ import trimesh
 from scipy.ndimage import gaussian_filter
 
 from ._camera import Camera
-from ._fixtures import fixture
+from ._fixtures import fixture, ground_plane
 from ._surface import Scene, Surface, load_mesh
 
 
 class Setup(NamedTuple):
     scene: Scene
     camera: Camera
-
-
-def ground_plane(size: float, height: float = 0.0) -> trimesh.Trimesh:
-    """A `size x size` square in the plane `y = height`, centred on the origin, normal +y, with UVs."""
-    h = size / 2
-    vertices = np.array([[-h, height, -h], [h, height, -h], [h, height, h], [-h, height, h]])
-    faces = np.array([[0, 2, 1], [0, 3, 2]])
-    uv = np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]])
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
-    mesh.visual = trimesh.visual.TextureVisuals(uv=uv)
-    return mesh
 
 
 def wood_texture(span: float, texels: int = 2048, *, grain: float = 0.025, mean: float = 0.5,

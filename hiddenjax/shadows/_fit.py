@@ -7,6 +7,7 @@ optimistix's Levenberg-Marquardt (a damped Gauss-Newton). Both anneal the temper
 (a wide basin: shadows felt from afar) to sharp (an accurate edge), a geometric schedule.
 """
 
+import warnings
 from functools import partial
 from typing import NamedTuple
 
@@ -17,7 +18,9 @@ import optimistix as optx
 
 from ..scene import Camera, Scene
 from ._polish import polish_lights
-from ._search import check_outside, hard_fit, search_lights
+from ._photometric import scan_distances
+from ._receiver import object_clearance, smooth_shading
+from ._search import _occluder_bounds, check_outside, hard_fit, search_lights
 from ._shading import ShadowScene, light_images
 from .._jit import host_array, jit
 
@@ -34,7 +37,10 @@ class LightFit(NamedTuple):
     better, then the polished ones (the last row is `positions`); `temperatures (K,)` used in each
     round; `ambient` the fitted constant radiance (0 without `ambient=True`); after the polish,
     `channel_intensities (L, C)` and `channel_ambient (C,)` each photo channel's own (a light's
-    colour times the camera's gain; `intensities` and `ambient` are their channel means), else None.
+    colour times the camera's gain; `intensities` and `ambient` are their channel means), else None;
+    after the polish, `covariance (L, 3, 3)` each light position's (`polish_lights`), else None;
+    `warnings`: sentences about a fit to distrust (a negative ambient, a light at the search box's
+    edge), also issued as `UserWarning`s.
     """
 
     positions: np.ndarray
@@ -45,6 +51,8 @@ class LightFit(NamedTuple):
     ambient: float = 0.0
     channel_intensities: np.ndarray | None = None
     channel_ambient: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    warnings: tuple = ()
 
 
 def _residual(params, args):
@@ -89,6 +97,9 @@ def fit_lights(
     shadows: ShadowScene | None = None,
     polish: bool = True,
     reference=None,
+    clearance: float | None = None,
+    shading: str | None = None,
+    box=None,
 ) -> LightFit:
     """Fit point-light positions and intensities to an image lit by those lights (eq. 4.10-4.11).
 
@@ -123,16 +134,35 @@ def fit_lights(
       `observe=False`), same shape as `image`: for an observed surface whose albedo is not the
       scene's (a textured table), the search fits the photo's ratio to it and the polish divides
       each pixel's albedo out (`polish_lights`). Needs the polish, and no soft fit (`steps` 0).
+    - `clearance`: metres; leave out the pixels within this distance of the occluders' modelled
+      silhouette (`object_clearance`): a real object a few millimetres from where the scene puts
+      it must not pass for shadow; half of it is the objects' placement uncertainty in
+      `covariance`. With a prepared `shadows`, build it with the mask `object_clearance(...)` (the
+      clearance then only widens the covariance). Default none (a rendered photo's object is where
+      the scene says).
+    - `shading`: `"smooth"` fits the photo's ratio to its own smooth brightness field
+      (`smooth_shading`: vignetting, a tone curve's slope, a falloff the scene does not know) as if
+      it were the reference photo; for real photos without a reference. Default none.
+    - `box (2, 3)`: the region the search looks in without `init`, min and max corners in metres
+      (default `default_box`, a few object sizes around the occluders).
 
     **Returns:** a `LightFit`.
     """
+    if clearance is not None and shadows is None:  # (a prepared ShadowScene's mask leaves it out already)
+        clear = object_clearance(scene, camera, clearance)
+        mask = clear if mask is None else clear & np.asarray(mask, bool)
     shadows = ShadowScene.from_scene(scene, camera, mask) if shadows is None else shadows
+    if shading not in (None, "smooth"):
+        raise ValueError(f"shading must be None or 'smooth', got {shading!r}")
+    if shading == "smooth":
+        if reference is not None:
+            raise ValueError("shading='smooth' stands in for a reference photo; give one of them")
+        reference = smooth_shading(image, np.asarray(shadows.pixels))
     if reference is not None and not (polish and steps in (None, 0)):
         raise ValueError("reference= needs polish=True and no soft fit (steps=0 or None): the soft fit models "
                          "the scene's albedo, not the photo's ratio to the reference")
     searched = None
     if init is None or search:
-        box = None
         if init is not None:
             guess = np.atleast_2d(np.asarray(init, np.float64))
             if guess.ndim != 2 or guess.shape[1] != 3 or not np.all(np.isfinite(guess)):
@@ -176,13 +206,96 @@ def fit_lights(
         intensities, a = searched.intensities, searched.ambient
     elif reference is None:  # (with a reference the polish, which it requires, fits them)
         intensities, a, _ = hard_fit(image, scene, shadows, positions, ambient)
-    channels = (None, None)
+    channels, covariance = (None, None), None
     if polish:
         polished = polish_lights(image, scene, camera, positions, ambient=ambient, mask=mask, reference=reference)
         positions, intensities, a = polished.positions, polished.intensities, polished.ambient
-        channels = (polished.channel_intensities, polished.channel_ambient)
+        channels, covariance = (polished.channel_intensities, polished.channel_ambient), polished.covariance
         trajectory.append(positions)
-    return LightFit(positions, intensities, np.array(history), np.stack(trajectory), temps, a, *channels)
+    if shading == "smooth" and polish:  # the distance along each shadow's valley from the brightness
+        box_used = None if searched is None else searched.box
+        scan = scan_distances(image, scene, shadows, positions, reference, box=box_used)
+        positions = scan.positions
+        covariance = _along_and_across(covariance, scan, positions, scene, clearance)
+        trajectory.append(positions)
+    notes = _distrust(positions, a, float(scale), None if searched is None else searched.box)
+    for note in notes:
+        warnings.warn(note, stacklevel=2)
+    return LightFit(positions, intensities, np.array(history), np.stack(trajectory), temps, a, *channels,
+                    covariance, tuple(notes))
+
+
+def _along_and_across(covariance, scan, positions, scene: Scene, clearance):
+    """The covariance after `scan_distances`: the ratio fit's across each light's axis, the scan's
+    profile variance along it, and (with a `clearance`) the object's placement: an occluder `delta`
+    off its modelled place turns the shadow's ray by `delta / l`, `l` the length of that ray from the
+    occluder's top to the receiver (its height over the sine of the light's elevation), with
+    `delta`'s standard deviation half the clearance."""
+    lo, hi = _occluder_bounds(scene)
+    anchor, height = (lo + hi) / 2, float(hi[1] - lo[1])
+    out = []
+    for j, e in enumerate(scan.axes):
+        across = np.eye(3) - np.outer(e, e)
+        S = across @ np.asarray(covariance[j], np.float64) @ across + scan.sigma[j] ** 2 * np.outer(e, e)
+        if clearance:
+            v = positions[j] - anchor
+            distance = np.linalg.norm(v)
+            d = v / max(distance, 1e-300)
+            ray = height / max(abs(d[1]), 0.1)
+            turn = 0.5 * clearance / max(ray, 1e-9) * distance
+            S = S + turn**2 * (np.eye(3) - np.outer(d, d))
+        out.append(S)
+    return np.stack(out)
+
+
+AMBIENT_TOLERANCE = 0.01  # a fitted ambient below -1% of the photo's RMS brightness is a warning
+
+
+def _distrust(positions, ambient: float, brightness: float, box) -> list[str]:
+    """Sentences about a fit not to trust: a clearly negative ambient (below `-AMBIENT_TOLERANCE` of the
+    photo's RMS `brightness`), a light at the searched box's edge."""
+    notes = []
+    if ambient < -AMBIENT_TOLERANCE * brightness:
+        notes.append(f"the fitted ambient is negative ({ambient:.3g}, {100 * ambient / brightness:.0f}% of the photo's "
+                     "brightness): no light is negative; a constant was taken off the photo (its black level) or it "
+                     "is not linear radiance (an 8-bit photo: --srgb, or --shading smooth)")
+    if box is not None:
+        size = box[1] - box[0]
+        near = np.any((positions - box[0] < 0.02 * size) | (box[1] - positions < 0.02 * size), axis=1)
+        for j in np.nonzero(near)[0]:
+            notes.append(f"light {j} ended at the edge of the searched box {np.round(box, 3).tolist()}: the light "
+                         "may lie outside it; give --init near it with a larger --reach")
+    return notes
+
+
+def light_uncertainty(fit: "LightFit", scene: Scene, level: float = 0.95) -> list[dict]:
+    """Each light's place as seen from the occluders, with its uncertainty at `level` (from `fit.covariance`).
+
+    Per light: `anchor (3,)` the occluders' centre (the middle of their bounding box), `direction
+    (3,)` unit from it to the light, `distance` metres, `angle` degrees (the radius of the
+    `level` confidence cone about `direction`: `sqrt(chi2_2(level) lambda_max) / distance`, with
+    `lambda_max` the largest variance across the ray), and `interval (2,)` metres (the distance
+    `+- z_level sigma` along the ray). Without a covariance (no polish) `angle` and `interval` are None.
+    """
+    import scipy.stats
+
+    lo, hi = _occluder_bounds(scene)
+    anchor = (lo + hi) / 2
+    out = []
+    for j, p in enumerate(np.asarray(fit.positions, np.float64)):
+        v = p - anchor
+        distance = float(np.linalg.norm(v))
+        d = v / max(distance, 1e-300)
+        row = dict(anchor=anchor, direction=d, distance=distance, angle=None, interval=None)
+        if fit.covariance is not None:
+            S = np.asarray(fit.covariance[j], np.float64)
+            across = (np.eye(3) - np.outer(d, d)) @ S @ (np.eye(3) - np.outer(d, d))
+            spread = float(np.sqrt(scipy.stats.chi2.ppf(level, 2) * max(np.linalg.eigvalsh(across)[-1], 0.0)))
+            along = float(np.sqrt(max(d @ S @ d, 0.0))) * float(scipy.stats.norm.ppf(0.5 + level / 2))
+            row["angle"] = float(np.degrees(np.arctan2(spread, distance)))
+            row["interval"] = np.array([distance - along, distance + along])
+        out.append(row)
+    return out
 
 
 def _soft_fit(shadows, y, scale, init, intensities, temperature, method, steps, rounds, ambient, learning_rate):

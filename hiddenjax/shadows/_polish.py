@@ -78,6 +78,31 @@ class LightPolish(NamedTuple):
     evaluations: int
     channel_intensities: np.ndarray | None = None
     channel_ambient: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    correlation: float = 1.0
+
+
+CORRELATION_WINDOW = 8  # pixels: the residual's autocorrelation is summed over lags up to this
+
+
+def residual_correlation(residual: np.ndarray, pixels: np.ndarray, shape: tuple, window: int = CORRELATION_WINDOW) -> float:
+    """`kappa >= 1`: how many pixels' worth of residual move together, `sum_{|dr|, |dc| <= window} rho(dr, dc)`
+    with `rho` the residual image's autocorrelation over the fitted pixels (`residual (P,)` at the flat
+    indices `pixels` of an image of `shape`). Independent pixels give 1; a misfit that spans a band
+    of pixels gives its area. The Gauss-Newton covariance assumes independent pixels and is scaled by it."""
+    H, W = shape
+    r = np.zeros(H * W)
+    m = np.zeros(H * W)
+    r[pixels], m[pixels] = residual - residual.mean(), 1.0
+    r, m = r.reshape(H, W), m.reshape(H, W)
+    size = (2 * H, 2 * W)
+    fr, fm = np.fft.rfft2(r, size), np.fft.rfft2(m, size)
+    products = np.fft.irfft2(fr * np.conj(fr), size)  # sum_x r(x) r(x + lag)
+    pairs = np.fft.irfft2(fm * np.conj(fm), size)  # how many fitted pixel pairs at each lag
+    lags = np.r_[0 : window + 1, -window:0]
+    products, pairs = products[np.ix_(lags % size[0], lags % size[1])], pairs[np.ix_(lags % size[0], lags % size[1])]
+    rho = np.where(pairs > 0.5, products / np.maximum(pairs, 1.0), 0.0) / max(products[0, 0] / pairs[0, 0], 1e-300)
+    return float(max(1.0, rho.sum()))
 
 
 class _Footprints:
@@ -190,44 +215,53 @@ def _gain(U: np.ndarray, h0: np.ndarray, intensities: np.ndarray, a: np.ndarray)
     return g / g.mean(axis=0)
 
 
+def _normal_equations(model: _Model, chosen, columns, plains, fitted, delta: float):
+    """`(J^T J (3L, 3L), J^T r (3L,), residuals (P, C))` of the variable-projection residual at the
+    positions `chosen (L, 3)`: `J` by central differences of `delta` metres, the intensities and the
+    ambient projected out (Kaufman), with the gain `u / m0` moving with the lights when there is one."""
+    intensities, a, gain = fitted
+    Y, ambient, L, ones = model.Y, model.ambient, len(chosen), np.ones((len(model.Y), 1))
+    dh = np.empty((len(Y), 3 * L))  # d h_j / d p_jk, central differences (and of the plain images)
+    dh0 = None if plains is None else np.empty((len(Y), 3 * L))
+    for j in range(L):
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = delta
+            (hp, h0p), (hm, h0m) = model.images(j, chosen[j] + e), model.images(j, chosen[j] - e)
+            dh[:, 3 * j + k] = (hp - hm) / (2 * delta)
+            if dh0 is not None:
+                dh0[:, 3 * j + k] = (h0p - h0m) / (2 * delta)
+    M, g, residuals = np.zeros((3 * L, 3 * L)), np.zeros(3 * L), np.empty_like(Y)
+    for c in range(Y.shape[1]):
+        w = ones if gain is None else gain[:, c, None]
+        A = w * (np.concatenate([columns, ones], axis=1) if ambient else columns)
+        coefficients = np.append(intensities[:, c], a[c]) if ambient else intensities[:, c]
+        D = w * dh * np.repeat(intensities[:, c], 3)
+        if dh0 is not None:  # the gain u / m0 moves with the lights too
+            m0 = plains @ intensities[:, c] + a[c]
+            D -= (A @ coefficients / np.maximum(m0, 1e-300))[:, None] * dh0 * np.repeat(intensities[:, c], 3)
+        residuals[:, c] = Y[:, c] - A @ coefficients
+        J = D - A @ np.linalg.lstsq(A, D, rcond=None)[0]  # the intensities and ambient refit: projected out
+        M, g = M + J.T @ J, g + J.T @ residuals[:, c]
+    return M, g, residuals
+
+
 def _levenberg_marquardt(model: _Model, chosen, columns, plains, delta: float, tolerance: float, iterations: int):
     """Joint steps on every light's position from `chosen (L, 3)` (`columns`, `plains`: `model.stack` there).
 
     Returns `(positions, columns, plains, evaluations)`; a step is taken only where it lowers the loss.
     """
     chosen = np.array(chosen, dtype=np.float64)  # the caller's stays as it is
-    Y, ambient, L, ones = model.Y, model.ambient, len(chosen), np.ones((len(model.Y), 1))
     intensities, a, rss, gain = model.fit(columns, plains)
     damping, evaluations = 1e-3, 0
     for _ in range(iterations):
-        dh = np.empty((len(Y), 3 * L))  # d h_j / d p_jk, central differences (and of the plain images)
-        dh0 = None if plains is None else np.empty((len(Y), 3 * L))
-        for j in range(L):
-            for k in range(3):
-                e = np.zeros(3)
-                e[k] = delta
-                (hp, h0p), (hm, h0m) = model.images(j, chosen[j] + e), model.images(j, chosen[j] - e)
-                dh[:, 3 * j + k] = (hp - hm) / (2 * delta)
-                if dh0 is not None:
-                    dh0[:, 3 * j + k] = (h0p - h0m) / (2 * delta)
-        evaluations += 6 * L
-        M, g = np.zeros((3 * L, 3 * L)), np.zeros(3 * L)
-        for c in range(Y.shape[1]):
-            w = ones if gain is None else gain[:, c, None]
-            A = w * (np.concatenate([columns, ones], axis=1) if ambient else columns)
-            coefficients = np.append(intensities[:, c], a[c]) if ambient else intensities[:, c]
-            D = w * dh * np.repeat(intensities[:, c], 3)
-            if dh0 is not None:  # the gain u / m0 moves with the lights too
-                m0 = plains @ intensities[:, c] + a[c]
-                D -= (A @ coefficients / np.maximum(m0, 1e-300))[:, None] * dh0 * np.repeat(intensities[:, c], 3)
-            r = Y[:, c] - A @ coefficients
-            J = D - A @ np.linalg.lstsq(A, D, rcond=None)[0]  # the intensities and ambient refit: projected out
-            M, g = M + J.T @ J, g + J.T @ r
+        M, g, _ = _normal_equations(model, chosen, columns, plains, (intensities, a, gain), delta)
+        evaluations += 6 * len(chosen)
         while damping < 1e4:
-            step = np.linalg.solve(M + damping * np.diag(np.diag(M) + 1e-30), g).reshape(L, 3)
+            step = np.linalg.solve(M + damping * np.diag(np.diag(M) + 1e-30), g).reshape(-1, 3)
             trial = chosen + step
             trial_columns, trial_plains = model.stack(trial)
-            evaluations += L
+            evaluations += len(chosen)
             fitted = model.fit(trial_columns, trial_plains)
             if fitted[2] < rss:
                 chosen, columns, plains, (intensities, a, rss, gain) = trial, trial_columns, trial_plains, fitted
@@ -333,10 +367,30 @@ def polish_lights(image, scene: Scene, camera: Camera, positions, *, pixel_sampl
     chosen, columns, plains, more = _nelder_mead(model, chosen, columns, plains, norm, tolerance, sweeps, step,
                                                  max_evaluations)
     evaluations += more + len(start)
-    intensities, a, rss, _ = model.fit(columns, plains)
+    intensities, a, rss, gain = model.fit(columns, plains)
     start_loss = model.fit(start_columns, start_plains)[2] / norm
     if rss / norm > start_loss:  # both stages only ever accept a lower loss: this guards rounding only
-        chosen = start
-        intensities, a, rss, _ = model.fit(start_columns, start_plains)
+        chosen, columns, plains = start, start_columns, start_plains
+        intensities, a, rss, gain = model.fit(columns, plains)
+    covariance, kappa = _covariance(model, chosen, columns, plains, (intensities, a, gain), delta, feet.pixels,
+                                    (camera.height, camera.width))
+    evaluations += 6 * len(chosen)
     return LightPolish(chosen, intensities.mean(axis=1), float(a.mean()), rss / norm, start_loss, evaluations,
-                       intensities, a)
+                       intensities, a, covariance, kappa)
+
+
+def _covariance(model: _Model, chosen, columns, plains, fitted, delta, pixels, shape):
+    """`(covariance (L, 3, 3), kappa)`: each light's position covariance from the Gauss-Newton normal
+    equations at the fit, `s^2 kappa (J^T J)^-1` (its diagonal blocks), with `s^2` the residual
+    variance per pixel value (the fitted intensities and ambient counted out of the degrees of
+    freedom) and `kappa` the residual's correlation area (`residual_correlation`) times how many of
+    the channels' residuals move together (1 for independent channels, `C` for a grey photo's)."""
+    M, _, residuals = _normal_equations(model, chosen, columns, plains, fitted, delta)
+    L, (P, C) = len(chosen), residuals.shape
+    dof = max(P * C - 3 * L - (L + int(model.ambient)) * C, 1)
+    s2 = float(np.sum(residuals**2)) / dof
+    channels = float(np.clip(np.sum(residuals.sum(axis=1) ** 2) / max(np.sum(residuals**2), 1e-300), 1.0, C))
+    kappa = channels * residual_correlation(residuals.mean(axis=1), pixels, shape)
+    inverse = np.linalg.pinv(M, rcond=1e-12, hermitian=True)
+    blocks = np.stack([inverse[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(L)])
+    return s2 * kappa * blocks, kappa

@@ -69,6 +69,19 @@ def default_box(scene: Scene) -> np.ndarray:
                      [centre[0] + 4 * size, hi[1] + 6 * size, centre[2] + 4 * size]])
 
 
+def search_box_within(scene: Scene, distance: float) -> np.ndarray:
+    """A search region for lights within `distance` metres of the occluders: `(2, 3)` corners spanning
+    `+-distance` around their centre in x and z and from a quarter of their height above their top
+    to `distance` above it (a desk lamp over small objects, which `default_box` would not reach)."""
+    if not (np.isfinite(distance) and distance > 0):
+        raise ValueError(f"distance must be positive metres, got {distance}")
+    lo, hi = _occluder_bounds(scene)
+    centre = (lo + hi) / 2
+    low = hi[1] + 0.25 * (hi[1] - lo[1])
+    return np.array([[centre[0] - distance, low, centre[2] - distance],
+                     [centre[0] + distance, max(hi[1] + distance, low + 1e-3), centre[2] + distance]])
+
+
 def direct_images(caster: RayCaster, x, n, rho, p, shade: bool = True) -> np.ndarray:
     """`rho/pi max(0, n.w) / d^2 V(x, p)` per point `x (N, 3)` (normals `n`, albedo `rho`) for a unit
     light at `p`, `(3,)` or one per point `(N, 3)` (eq. 4.11 with Embree's hard visibility);

@@ -1,0 +1,92 @@
+"""What of a real photo a light fit may trust: pixels clear of the object, and the receiver's smooth shading.
+
+**The object's own pixels.** A scene file places the object to a few millimetres; the real
+object's outline then falls a few pixels from the modelled one, and its dark pixels read as
+shadowed table. `object_clearance` leaves out the occluders' silhouette (the pixels where any
+of `S` footprint rays meets a surface with `observe=False`) dilated by `margin` metres seen at
+the silhouette's depth: `r = margin f / z` pixels, `f` the focal length and `z` the nearest
+occluder depth in the camera frame.
+
+**A smooth brightness field.** A real photo of a lit table is the model times a shading that
+varies slowly across the image: the lens' vignetting, the slope of an unknown tone curve, a
+lamp's falloff the scene does not know exactly. Fitted unmodelled, it places the light by the
+table's brightness gradient instead of by the shadow. `smooth_shading` estimates it from the
+photo itself as
+
+    u(r, c) = exp(sum_{i + j <= d} beta_ij  r'^i c'^j),   r', c' in [-1, 1] (image coordinates),
+
+a polynomial of degree `d` (10 coefficients at `d = 3`) in the log of the fitted pixels'
+brightness, by least squares that leaves out, over `passes` rounds, the pixels more than
+`trim` robust standard deviations below the fit (shadows, the object's contact darkening) or
+above it (highlights). The fit then uses `u` as its reference photo (`fit_lights(reference=)`):
+the photo's ratio to the model's unshadowed image, in which the field cancels.
+"""
+
+import cv2
+import numpy as np
+
+from ..scene import Camera, Scene
+from ..transport._embree import RayCaster, primary_hits
+
+SHADING_DEGREE = 3  # the field's polynomial degree in the image coordinates (10 coefficients)
+SHADING_TRIM = 2.5  # robust standard deviations off the fit that a pixel may be and still shape it
+OBJECT_MARGIN = 0.005  # metres: how far a real object may stand from where the scene file puts it
+
+
+def object_clearance(scene: Scene, camera: Camera, margin: float = OBJECT_MARGIN, pixel_samples: int = 4) -> np.ndarray:
+    """`(H, W)` bool: the pixels at least `margin` metres (at the object's depth) from every occluder's
+    modelled silhouette (module docstring); all True when the scene has no occluder or `margin` is 0."""
+    if not (np.isfinite(margin) and margin >= 0):
+        raise ValueError(f"margin must be a distance >= 0 in metres, got {margin}")
+    occluders = np.array([not s.observe for s in scene])
+    keep = np.ones((camera.height, camera.width), bool)
+    if not occluders.any():
+        return keep
+    caster = RayCaster(scene)
+    hits, _ = primary_hits(caster, camera, pixel_samples, 0)
+    on = (hits.surface >= 0) & occluders[np.maximum(hits.surface, 0)]
+    silhouette = on.reshape(camera.height * camera.width, pixel_samples).any(axis=1).reshape(keep.shape)
+    if not silhouette.any():
+        return keep
+    depth = (hits.position[on] - np.asarray(camera.origin, np.float64)) @ np.asarray(camera.rotation, np.float64)[2]
+    focal = float(np.max(np.asarray(camera.intrinsics)[:2]))
+    radius = int(np.ceil(margin * focal / max(float(np.min(depth)), 1e-9))) if margin > 0 else 0
+    if radius > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+        silhouette = cv2.dilate(silhouette.astype(np.uint8), kernel).astype(bool)
+    return ~silhouette
+
+
+def smooth_shading(image, pixels, *, degree: int = SHADING_DEGREE, trim: float = SHADING_TRIM,
+                   passes: int = 4) -> np.ndarray:
+    """The photo's smooth brightness field `(H, W)` (or `(H, W, C)` per channel), fitted on the flat
+    pixel indices `pixels` (module docstring): a reference photo for `fit_lights(reference=)`."""
+    image = np.asarray(image, np.float64)
+    if image.ndim not in (2, 3):
+        raise ValueError(f"expected a photo (H, W) or (H, W, C), got shape {image.shape}")
+    if not isinstance(degree, (int, np.integer)) or degree < 0:
+        raise ValueError(f"degree must be an integer >= 0, got {degree!r}")
+    H, W = image.shape[:2]
+    pixels = np.asarray(pixels).reshape(-1)
+    values = image.reshape(H * W, -1)
+    rows, cols = np.divmod(np.arange(H * W), W)
+    r, c = 2 * (rows + 0.5) / H - 1, 2 * (cols + 0.5) / W - 1
+    basis = np.stack([r**i * c**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=1)
+    if len(pixels) < 4 * basis.shape[1]:
+        raise ValueError(f"{len(pixels)} fitted pixels are too few for a shading field of {basis.shape[1]} "
+                         f"coefficients; lower the degree or fit a larger part of the photo")
+    out = np.empty_like(values)
+    for k in range(values.shape[1]):
+        v = values[pixels, k]
+        good = v > 0
+        if good.sum() < 4 * basis.shape[1]:
+            raise ValueError("the photo is black over most of the fitted pixels: no shading field can be fitted")
+        log_v = np.log(np.where(good, v, 1.0))
+        used = good.copy()
+        for _ in range(passes):
+            beta = np.linalg.lstsq(basis[pixels][used], log_v[used], rcond=None)[0]
+            residual = log_v - basis[pixels] @ beta
+            spread = 1.4826 * np.median(np.abs(residual[used]))
+            used = good & (np.abs(residual) <= trim * max(spread, 1e-6))
+        out[:, k] = np.exp(basis @ beta)
+    return out.reshape(image.shape)
