@@ -78,15 +78,20 @@ def synthetic(count: int, seed: int = 0):
     return mask, np.stack(photos), np.zeros((count,) + size, bool), lights
 
 
-def lambertian_fit(mask, photo, saturated) -> np.ndarray:
-    """The baseline: least squares `N b = y` on the mask's sphere normals (module docstring)."""
+def sphere_pixels(mask, photo, saturated):
+    """`(normals (N, 3), grey (N,), unsaturated (N,))` at the mask's pixels inside its fitted sphere."""
     row, col, radius = hj.photo.fit_sphere(mask)
     rr, cc = np.nonzero(mask)
     x, y = (cc + 0.5 - col) / radius, -(rr + 0.5 - row) / radius
     keep = x**2 + y**2 < 1
     n = np.column_stack([x, y, np.sqrt(np.maximum(0, 1 - x**2 - y**2))])[keep]
-    grey = photo.mean(axis=-1)[rr, cc][keep]
-    good = (grey > 0.1 * np.percentile(grey, 95)) & ~saturated[rr, cc][keep]  # not of the max: a highlight
+    return n, photo.mean(axis=-1)[rr, cc][keep], ~saturated[rr, cc][keep]
+
+
+def lambertian_fit(mask, photo, saturated) -> np.ndarray:
+    """The baseline: least squares `N b = y` on the mask's sphere normals (module docstring)."""
+    n, grey, unsaturated = sphere_pixels(mask, photo, saturated)
+    good = (grey > 0.1 * np.percentile(grey, 95)) & unsaturated  # not of the max: a highlight
     b, *_ = np.linalg.lstsq(n[good], grey[good], rcond=None)
     return unit(b)
 
@@ -95,13 +100,7 @@ def two_light_ceiling(mask, photo, saturated, starts, powers) -> np.ndarray:
     """The two-light Lambertian fit started at the truth (module docstring): `(2, 3)` directions."""
     from scipy.optimize import least_squares
 
-    row, col, radius = hj.photo.fit_sphere(mask)
-    rr, cc = np.nonzero(mask)
-    x, y = (cc + 0.5 - col) / radius, -(rr + 0.5 - row) / radius
-    keep = x**2 + y**2 < 1
-    n = np.column_stack([x, y, np.sqrt(np.maximum(0, 1 - x**2 - y**2))])[keep]
-    grey = photo.mean(axis=-1)[rr, cc][keep]
-    good = ~saturated[rr, cc][keep]
+    n, grey, good = sphere_pixels(mask, photo, saturated)
 
     def directions(p):
         theta, phi = p[0::3], p[1::3]

@@ -51,9 +51,19 @@ def test_long_page_runs(page, tmp_path, monkeypatch):
 
 
 def test_scene_file_guide_reads(tmp_path):
-    (toml,) = blocks("docs/guide/scene-files.md", "toml")
+    toml, desk = blocks("docs/guide/scene-files.md", "toml")
     (tmp_path / "scene.toml").write_text(toml)
     hj.io.write_png(tmp_path / "mask.png", np.ones((128, 128), np.float32))  # the mask image it names
     f = hj.load_scene(tmp_path / "scene.toml")
     assert (f.camera.width, f.camera.height, f.grid.height, f.grid.width) == (128, 128, 32, 64)
     assert len(f.scene) == 1 and np.isclose(float(f.scene[0].albedo), 0.8)
+    (tmp_path / "desk.toml").write_text(desk)  # the primitives' example: a desk, a pencil and a book
+    f = hj.load_scene(tmp_path / "desk.toml")
+    assert [s.observe for s in f.scene] == [True, False, False]
+    assert np.isclose(f.scene[1].mesh.bounds[1, 1], 0.076) and np.isclose(f.scene[2].mesh.bounds[1, 1], 0.03)
+
+
+def test_real_captures_guide_chessboard_file_reads(tmp_path):
+    (chess,) = blocks("docs/guide/real-captures.md", "toml")
+    (tmp_path / "chess.toml").write_text(chess)
+    assert hj.photo.load_board(tmp_path / "chess.toml") == hj.photo.Chessboard(inner=(9, 6), square=0.025)
