@@ -138,6 +138,7 @@ def test_reconstruct_refuses_bad_captures_in_one_line_and_writes_nothing(capture
     _, _, image, _ = capture
     BOARD.save(tmp_path / "board.toml")
     photo.Board(squares=(10, 7), square=0.025, marker=0.019, dictionary="5X5_50").save(tmp_path / "other.toml")
+    photo.Chessboard(inner=(9, 6), square=0.025).save(tmp_path / "chess.toml")
     lens().save(tmp_path / "camera.toml")
     hj.io.write_exr(tmp_path / "photo.exr", image)
     hj.io.write_exr(tmp_path / "blank.exr", np.full((HEIGHT, WIDTH), 0.5, np.float32))
@@ -150,6 +151,7 @@ def test_reconstruct_refuses_bad_captures_in_one_line_and_writes_nothing(capture
     cases = [
         ([board, str(tmp_path / "blank.exr"), "--at", "0", "-0.15", *cam], "blank"),
         ([str(tmp_path / "other.toml"), good, "--at", "0", "-0.15", *cam], "match the printed board"),
+        ([str(tmp_path / "chess.toml"), good, "--at", "0", "-0.15", *cam], "reconstruct needs a ChArUco board"),
         ([board, good, "--at", "3", "3", *cam], "object is outside the photo"),
         ([board, good, "--at", "0", "-0.15"], "give the camera"),
         ([board, str(tmp_path / "small.exr"), "--at", "0", "-0.15", *cam], "camera calibration"),

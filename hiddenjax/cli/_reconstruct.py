@@ -66,7 +66,10 @@ def add_parsers(sub) -> None:
 def reconstruct(args) -> dict:
     """`hiddenjax reconstruct`: one capture (a photo or a bracket) to the environment map."""
     out = _output_folder(args.output)
-    b = _photo.Board.load(args.board)
+    b = _photo.load_board(args.board)
+    if not isinstance(b, _photo.Board):
+        raise ValueError(f"{args.board} describes a plain chessboard: it calibrates the camera, but reconstruct needs "
+                         "a ChArUco board, whose markers fix the world's orientation (`hiddenjax board` prints one)")
     photo = _read_capture(args.photos, args.times, capture_srgb(args), args.response)
     H0, W0 = photo.radiance.shape[:2]
     if args.intrinsics is not None:
