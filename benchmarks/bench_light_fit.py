@@ -91,6 +91,21 @@ def _error(found, truth):
     return np.linalg.norm(found[list(best)] - truth, axis=1)
 
 
+def _seen(u, light):
+    """`(angle, distance, inside)` of the true `light` against one row `u` of `light_uncertainty`: the
+    angle between the found and true directions from the objects, the true distance, and whether the
+    truth lies in the 95% cone and distance interval."""
+    true = light - u["anchor"]
+    distance = float(np.linalg.norm(true))
+    angle = float(np.degrees(np.arccos(np.clip(u["direction"] @ true / distance, -1, 1))))
+    inside = u["angle"] is not None and angle <= u["angle"] and u["interval"][0] <= distance <= u["interval"][1]
+    return angle, distance, bool(inside)
+
+
+def _inside(fit, scene, light) -> bool:
+    return _seen(hj.shadows.light_uncertainty(fit, scene)[0], light)[2]
+
+
 def _textured(size, lights, render, table):
     """The teapot on a wood-textured table: fits with and without a reference photo."""
     plain = hj.scenes.object_on_plane("teapot", width=size, height=size, plane_albedo=0.5)  # what the fit knows
@@ -174,11 +189,7 @@ def _faulty(cases, render, table, rng):
                         key=lambda p: np.sum(np.linalg.norm(fit.positions[list(p)] - lights, axis=1)))
             for light, k in zip(lights, order):
                 u = found[k]
-                true = light - u["anchor"]
-                true_distance = float(np.linalg.norm(true))
-                angle = float(np.degrees(np.arccos(np.clip(u["direction"] @ true / true_distance, -1, 1))))
-                inside = (u["angle"] is not None and angle <= u["angle"]
-                          and u["interval"][0] <= true_distance <= u["interval"][1])
+                angle, true_distance, inside = _seen(u, light)
                 rows.append(dict(case=case, fit=label, objects=len(objects), lights=count, gamma=gamma,
                                  light=light.tolist(), distance_m=true_distance, direction_error_deg=angle,
                                  position_error_m=float(np.linalg.norm(fit.positions[k] - light)),
@@ -257,7 +268,7 @@ def main(argv=None):
                 label = "none" if start is None else f"{100 * start:.0f} cm off"
                 results["single"].append(dict(fixture=name, triangles=len(scene[1].triangles), light=light.tolist(),
                                               start=start, error_m=err, seconds=seconds, embree_s=embree,
-                                              ambient=fit.ambient))
+                                              ambient=fit.ambient, inside_95=_inside(fit, scene, light)))
                 table.append((f"{name} ({len(scene[1].triangles)} tri) {light.tolist()}", label, f"{100 * err:.2f}",
                               f"{seconds:.1f}, {seconds / embree:.0f}x"))
     if not args.quick and args.part in ("all", "multi"):
