@@ -302,19 +302,19 @@ CHESSBOARD = photo.Chessboard(inner=(9, 6), square=0.04)
 
 
 def test_chessboard_calibration_and_pose_from_rendered_photos(tmp_path):
-    """A plain chessboard (OpenCV's 9 x 6 inner corners) through the same ray-cast photos and lens:
+    """A plain chessboard (OpenCV's 9 x 6 inner corners) through six of the same views and lens:
     the focal length within 0.5%, the pose's position within 1 mm up to the pattern's half-turn,
     and the board file round-trips through `load_board`."""
     rng = np.random.default_rng(1)
     cams, images = [], []
-    for origin, up in zip(ORIGINS, UPS):
+    for origin, up in list(zip(ORIGINS, UPS))[:6]:
         cam = hj.Camera.look_at(origin, (0, 0, 0), up, fov=FOV, width=WIDTH, height=HEIGHT)
-        image = photo.render_board_photo(CHESSBOARD, cam, distortion=DISTORTION, samples=3)
+        image = photo.render_board_photo(CHESSBOARD, cam, distortion=DISTORTION, samples=2)
         images.append(image + rng.normal(0, 0.01, image.shape).astype(np.float32))
         cams.append(cam)
     intr = photo.calibrate(CHESSBOARD, images)
     assert abs(intr.focal[0] / true_focal() - 1) < 0.005 and abs(intr.focal[1] / true_focal() - 1) < 0.005
-    assert intr.rms < 0.5 and intr.views == 8
+    assert intr.rms < 0.5 and intr.views == 6
     pose = photo.board_pose(CHESSBOARD, images[1], intr)
     assert np.linalg.norm(pose.origin - np.asarray(cams[1].origin)) < 1e-3  # the centre is the same either way
     # the frame is OpenCV's corner order: the true one or its half-turn about the board's normal (y)

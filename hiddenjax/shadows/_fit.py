@@ -257,8 +257,9 @@ def _distrust(positions, ambient: float, brightness: float, box) -> list[str]:
     notes = []
     if ambient < -AMBIENT_TOLERANCE * brightness:
         notes.append(f"the fitted ambient is negative ({ambient:.3g}, {100 * ambient / brightness:.0f}% of the photo's "
-                     "brightness): no light is negative; a constant was taken off the photo (its black level) or it "
-                     "is not linear radiance (an 8-bit photo: --srgb, or --shading smooth)")
+                     "brightness): the model is brighter than the photo everywhere; a constant was taken off the photo "
+                     "(its black level), it is not linear radiance (an 8-bit photo: --srgb, or --shading smooth), or "
+                     "it lacks the interreflections the polish adds (a direct-light render)")
     if box is not None:
         size = box[1] - box[0]
         near = np.any((positions - box[0] < 0.02 * size) | (box[1] - positions < 0.02 * size), axis=1)
