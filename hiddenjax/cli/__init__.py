@@ -6,9 +6,11 @@
     hiddenjax render A.npz env.exr -o image.exr
     hiddenjax cues A.npz [--image photo.exr] -o cues/
     hiddenjax lights SCENE.toml photo.exr -o lights.json [--count N] [--init X Y Z ...] [--reach M]
-                     [--reference table.exr] [--no-polish] [--png fit.png]
+                     [--within M] [--reference table.exr] [--shading smooth|none] [--clearance M] [--width W]
+                     [--no-polish] [--png fit.png]
     hiddenjax demo [--quick] [--out DIR]
     hiddenjax board -o board.png [--pdf board.pdf] [--squares C R] [--square M] [--marker M] [--dpi D]
+                    [--chessboard]
     hiddenjax calibrate board.toml photo... -o camera.toml [--sheet check.png]
     hiddenjax reconstruct board.toml photo... --object MESH --at X Z [--yaw DEG] [--size M]
                           (--intrinsics camera.toml | --fov DEG) [--times T...] [--plate PHOTO...]
