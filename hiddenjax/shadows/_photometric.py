@@ -18,9 +18,10 @@ mimic a lamp's falloff, which is centred below the lamp), and `beta` the tone cu
 
     log y = log c + beta log m + k1' r^2 + k2' r^4        (k' = beta k; the first light's I is 1),
 
-is fitted by robust least squares (`soft_l1`, scale 0.1 in log radiance: shadow edges that the
-pixel-centre model misplaces count little) for each candidate position of one light along its
-valley, the others held: `p + t e`, `e` the weakest direction of the ratio fit's covariance. The
+is fitted by robust least squares (`soft_l1`, scale 0.1 in log radiance: what the shadows'
+trimming misses counts little) for each candidate position of one light along its ray from the
+occluders' centre, the others held: `p + t e`, `e` the unit direction from that centre to `p`
+(the direction the ratio fit found is kept; the shadows' pixels are left out). The
 best `t` over a grid, refined by a parabola, is the distance; the profile of the loss over `t`
 gives its interval, `{t : (rss(t) - rss_min) / (s^2 kappa) <= chi2_1(level)}`, with `s^2` the
 robust loss per pixel at the best `t` and `kappa` the residual's correlation area
