@@ -137,7 +137,7 @@ def test_distance_from_the_falloff_through_a_tone_curve_and_vignetting():
     (2.2): started on the true ray at 1.6 times the distance, the scan finds the distance within 5%,
     the tone curve's power within 10% of 1/2.2, and its interval holds the truth."""
     scene, camera = desk(size=(96, 72))
-    anchor = np.mean(sh._search._occluder_bounds(scene), axis=0)
+    anchor = sh._search.occluder_centre(scene)
     photo = hj.render_point_lights(scene, camera, LIGHT[None], [0.05], pixel_samples=9)
     rows, cols = np.mgrid[:72, :96] + 0.5
     r2 = ((rows - 36) ** 2 + (cols - 48) ** 2) / (36**2 + 48**2)

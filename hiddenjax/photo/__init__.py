@@ -1,4 +1,5 @@
-"""Real captures: a printed ChArUco board (or a plain chessboard), camera calibration, the board's pose, linear radiance photos.
+"""Real captures: a printed ChArUco board (or a plain chessboard), camera calibration, the board's pose,
+linear radiance photos.
 
 The path from a camera to a map: `hiddenjax board` (print it), photograph the board from several
 angles (`calibrate`), photograph the object standing on it (`board_pose` -> `BoardPose.camera`),

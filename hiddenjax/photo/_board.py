@@ -56,6 +56,23 @@ class _PlanarBoard(eqx.Module):
         """World positions `(K, 3)` of the chessboard's inner corners, in OpenCV's id order."""
         return self.to_world(self.board_points())
 
+    def image(self, dpi: float = 300.0, margin: float = 0.0) -> np.ndarray:
+        """The printable board, uint8 `(H, W)` at `dpi` dots per inch (true size when printed at 100%).
+
+        `margin` metres of white are added on every side.
+        """
+        if not (np.isfinite(dpi) and dpi > 0):
+            raise ValueError(f"dpi must be positive, got {dpi}")
+        W, D = self.size
+        px = dpi / (MM_PER_INCH / 1000.0)  # pixels per metre
+        width, height = int(round(W * px)), int(round(D * px))
+        if min(width, height) < 4 * max(self.squares):
+            raise ValueError(f"dpi {dpi} gives {width} x {height} pixels, too few for the board's squares; "
+                             f"raise the dpi")
+        board = self._pattern(width, height, px)
+        m = int(round(margin * px))
+        return np.pad(board, m, constant_values=255) if m else board
+
     def texture(self, pixels_per_metre: float = 4000.0) -> np.ndarray:
         """Reflectance-free board pattern as float `(H, W)` in `{0, 1}` covering exactly `size` (for renderers)."""
         return self.image(dpi=pixels_per_metre * MM_PER_INCH / 1000.0).astype(np.float32) / 255.0
@@ -109,18 +126,8 @@ class Board(_PlanarBoard):
         """The inner corners `(K, 3)` in OpenCV's board frame (metres), in id order."""
         return np.asarray(self.opencv().getChessboardCorners(), dtype=np.float64)
 
-    def image(self, dpi: float = 300.0, margin: float = 0.0) -> np.ndarray:
-        """The printable board, uint8 `(H, W)` at `dpi` dots per inch (true size when printed at 100%).
-
-        `margin` metres of white are added on every side.
-        """
-        if not (np.isfinite(dpi) and dpi > 0):
-            raise ValueError(f"dpi must be positive, got {dpi}")
-        W, D = self.size
-        px = dpi / (MM_PER_INCH / 1000.0)  # pixels per metre
-        width, height = int(round(W * px)), int(round(D * px))
-        if min(width, height) < 4 * max(self.squares):
-            raise ValueError(f"dpi {dpi} gives {width} x {height} pixels, too few for the markers; raise the dpi")
+    def _pattern(self, width: int, height: int, px: float) -> np.ndarray:
+        """The board's `(height, width)` uint8 pattern at `px` pixels per metre."""
         # OpenCV draws squares on whole pixels; draw them whole at the next integer square size and
         # box-filter down, so every square edge lands at its true position (grey where it cuts a pixel).
         n = int(np.ceil(self.square * px - 1e-6))
@@ -128,8 +135,7 @@ class Board(_PlanarBoard):
         board = self.opencv().generateImage((cols * n, rows * n), marginSize=0, borderBits=1)
         if board.shape != (height, width):
             board = cv2.resize(board, (width, height), interpolation=cv2.INTER_AREA)
-        m = int(round(margin * px))
-        return np.pad(board, m, constant_values=255) if m else board
+        return board
 
     # ---- files ------------------------------------------------------------------------------
     def toml(self) -> str:
@@ -194,22 +200,13 @@ class Chessboard(_PlanarBoard):
         j, i = np.mgrid[1 : rows + 1, 1 : cols + 1]
         return np.column_stack([i.ravel(), j.ravel(), np.zeros(i.size)]) * self.square
 
-    def image(self, dpi: float = 300.0, margin: float = 0.0) -> np.ndarray:
-        """The printable chessboard, uint8 `(H, W)` at `dpi` (black top-left square), `margin` metres of white around."""
-        if not (np.isfinite(dpi) and dpi > 0):
-            raise ValueError(f"dpi must be positive, got {dpi}")
-        px = dpi / (MM_PER_INCH / 1000.0)
-        W, D = self.size
-        width, height = int(round(W * px)), int(round(D * px))
-        if min(width, height) < 4 * max(self.squares):
-            raise ValueError(f"dpi {dpi} gives {width} x {height} pixels, too few for the squares; raise the dpi")
-        # each pixel's covered fraction of white, from the squares' true edges (grey where an edge cuts it)
+    def _pattern(self, width: int, height: int, px: float) -> np.ndarray:
+        """The chessboard's `(height, width)` uint8 pattern at `px` pixels per metre, black top-left square:
+        each pixel's covered fraction of white from the squares' true edges (grey where an edge cuts it)."""
         x = (np.arange(4 * width) + 0.5) / (4 * px * self.square)
         y = (np.arange(4 * height) + 0.5) / (4 * px * self.square)
         white = ((np.floor(x)[None, :] + np.floor(y)[:, None]) % 2).reshape(height, 4, width, 4).mean(axis=(1, 3))
-        board = np.round(255 * white).astype(np.uint8)
-        m = int(round(margin * px))
-        return np.pad(board, m, constant_values=255) if m else board
+        return np.round(255 * white).astype(np.uint8)
 
     def toml(self) -> str:
         cols, rows = _pair(self.inner)

@@ -1,5 +1,5 @@
 """Camera intrinsics and the board's pose from photos of a ChArUco board (OpenCV's aruco module) or
-of a plain chessboard (OpenCV's sector-based chessboard detector).
+of a plain chessboard (OpenCV's chessboard detectors).
 
 Pixel coordinates here are OpenCV's (pixel centres at integers); `BoardPose.camera` converts to
 the project's convention (centres at +.5) through `Camera.from_opencv`.
@@ -14,7 +14,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from ..io import read_image, read_stored, read_toml, tonemap, write_text
+from ..io import read_stored, read_toml, tonemap, write_text
 from ..scene import Camera
 from ._board import BOARD_KINDS, BOARD_TO_WORLD, Board, Chessboard
 
@@ -145,10 +145,10 @@ def _grey8(image) -> np.ndarray:
 def read_board_photo(path) -> np.ndarray:
     """A photo for the board detectors: an 8-bit file's pixels as stored (uint8, what OpenCV's own
     tools see), anything else as `io.read_image` returns it (tone-mapped for the detector)."""
-    stored, bits = read_stored(path)
+    stored, bits = read_stored(path)  # read once: `read_image(path)` is these values as float32
     if bits == 8:
         return np.round(stored * 255).astype(np.uint8)
-    return read_image(path)
+    return np.ascontiguousarray(stored, dtype=np.float32)
 
 
 def detect(board: "Board | Chessboard", image) -> Detection:
@@ -158,8 +158,8 @@ def detect(board: "Board | Chessboard", image) -> Detection:
     grey = _grey8(image)
     if grey.max() == grey.min():
         raise ValueError("the photo is blank (one value everywhere); no board can be found in it")
+    size = (grey.shape[1], grey.shape[0])
     if isinstance(board, Chessboard):
-        size = (grey.shape[1], grey.shape[0])
         pattern = tuple(int(v) for v in board.inner)
         found, corners = cv2.findChessboardCorners(grey, pattern)
         if found:  # OpenCV's recipe: a window of half-size 11, or a quarter of the squares where they are smaller
@@ -172,10 +172,10 @@ def detect(board: "Board | Chessboard", image) -> Detection:
             found, corners = cv2.findChessboardCornersSB(grey, pattern, flags=cv2.CALIB_CB_ACCURACY)
         if not found:
             return Detection(np.zeros((0, 2)), np.zeros((0,), dtype=int), size)
-        return Detection(corners.reshape(-1, 2).astype(np.float64), np.arange(len(corners.reshape(-1, 2))), size)
+        corners = corners.reshape(-1, 2).astype(np.float64)
+        return Detection(corners, np.arange(len(corners)), size)
     detector = cv2.aruco.CharucoDetector(board.opencv())
     corners, ids, _, _ = detector.detectBoard(grey)
-    size = (grey.shape[1], grey.shape[0])
     if ids is None or len(ids) == 0:
         return Detection(np.zeros((0, 2)), np.zeros((0,), dtype=int), size)
     return Detection(corners.reshape(-1, 2).astype(np.float64), ids.reshape(-1).astype(int), size)

@@ -20,7 +20,7 @@ from ..scene import Camera, Scene
 from ._polish import polish_lights
 from ._photometric import scan_distances
 from ._receiver import object_clearance, smooth_shading
-from ._search import _occluder_bounds, check_outside, hard_fit, search_lights
+from ._search import _occluder_bounds, check_outside, hard_fit, occluder_centre, search_lights
 from ._shading import ShadowScene, light_images
 from .._jit import host_array, jit
 
@@ -280,8 +280,7 @@ def light_uncertainty(fit: "LightFit", scene: Scene, level: float = 0.95) -> lis
     """
     import scipy.stats
 
-    lo, hi = _occluder_bounds(scene)
-    anchor = (lo + hi) / 2
+    anchor = occluder_centre(scene)
     out = []
     for j, p in enumerate(np.asarray(fit.positions, np.float64)):
         v = p - anchor

@@ -38,7 +38,7 @@ import scipy.stats
 from ..scene import Scene
 from ..transport._embree import RayCaster
 from ._polish import residual_correlation
-from ._search import _unit_images
+from ._search import _unit_images, occluder_centre
 
 LOG_SCALE = 0.1  # the robust loss' scale in log radiance
 SHADOW_RATIO = 0.9  # a fitted pixel darker than this fraction of the photo's smooth shading is in a shadow
@@ -96,8 +96,6 @@ def scan_distances(image, scene: Scene, shadows, positions, shading, *, box=None
     smooth shading (`smooth_shading`); `box (2, 3)` bounds the scan (default the segment from a
     tenth to three times each light's distance from the occluders' centre).
     """
-    from ._search import _occluder_bounds
-
     positions = np.array(positions, np.float64)
     y = np.asarray(shadows.image_to_rows(image), np.float64)
     u = np.asarray(shadows.image_to_rows(shading), np.float64)
@@ -112,7 +110,7 @@ def scan_distances(image, scene: Scene, shadows, positions, shading, *, box=None
     log_y, r2 = np.log(y[keep]), _radius2(pixels, shadows.image_shape)
     observed = [surface for surface in scene if surface.observe]
     caster = RayCaster(Scene(observed) if observed else scene)  # the falloff alone: no occluders, no shadows
-    anchor = np.mean(_occluder_bounds(scene), axis=0)
+    anchor = occluder_centre(scene)
     columns = _unit_images(caster, shadows, positions).T[keep]
     L = len(positions)
     axes, sigma, intervals = np.zeros((L, 3)), np.zeros(L), np.zeros((L, 2))

@@ -67,7 +67,9 @@ class LightPolish(NamedTuple):
     `|r|^2 / |y|^2` at `positions`, summed over channels; `start_loss` the same at the starting
     positions (the polish never returns a worse fit); `evaluations` how many candidate images were
     rendered; `channel_intensities (L, C)` and `channel_ambient (C,)` each channel's own (`C = 1`
-    for a grey photo): a light's colour times the camera's gain in that channel.
+    for a grey photo): a light's colour times the camera's gain in that channel; `covariance (L, 3, 3)`
+    each position's (`_covariance`: the photo's noise and correlated misfit, not a wrong model) and
+    `correlation` the factor `kappa` it was scaled by.
     """
 
     positions: np.ndarray

@@ -55,6 +55,11 @@ def _occluder_bounds(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return points.min(axis=0), points.max(axis=0)
 
 
+def occluder_centre(scene: Scene) -> np.ndarray:
+    """`(3,)` the middle of the occluders' bounding box (`_occluder_bounds`): where a light is seen from."""
+    return np.mean(_occluder_bounds(scene), axis=0)
+
+
 def default_box(scene: Scene) -> np.ndarray:
     """A search region above the occluders: `(2, 3)` min and max corners, metres.
 
@@ -271,7 +276,7 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
             spacing = spacing / 2
         return chosen, columns, _fit(columns, y, ambient)[2], scored
 
-    centre = np.mean(_occluder_bounds(scene), axis=0)
+    centre = occluder_centre(scene)
     offsets = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     spacing = (box[1] - box[0]) / (points - 1)
     best_run = None

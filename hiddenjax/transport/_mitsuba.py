@@ -80,9 +80,10 @@ def _scene_dict(mi, scene: Scene, camera: Camera, folder: Path, integrator: dict
     """Mitsuba's scene dictionary for our surfaces (PLY files written to `folder`), camera and integrator.
 
     Emitters are the caller's. A glossy surface is Mitsuba's `roughplastic` (GGX, `nonlinear=false`,
-    air outside); a smooth one carries its vertex normals in its PLY file (Phong-interpolated there too). Constant albedo or a grey texture (Mitsuba's bitmap, bilinear and
-    repeating as `Surface`'s; its rows are flipped: Mitsuba puts bitmap row 0 at `v = 0`, ours at
-    `v = 1`); a centred pinhole camera with square pixels only.
+    air outside); a smooth one carries its vertex normals in its PLY file (Phong-interpolated there
+    too). Constant albedo or a grey texture (Mitsuba's bitmap, bilinear and repeating as `Surface`'s;
+    its rows are flipped: Mitsuba puts bitmap row 0 at `v = 0`, ours at `v = 1`); a centred pinhole
+    camera with square pixels only.
     """
     fx, fy, cx, cy = np.asarray(camera.intrinsics, dtype=np.float64)
     if not (np.isclose(fx, fy) and np.isclose(cx, camera.width / 2) and np.isclose(cy, camera.height / 2)):
