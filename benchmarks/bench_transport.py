@@ -52,6 +52,23 @@ def column_errors(A, ref):
     return np.linalg.norm(A - ref, axis=0)[keep] / norms[keep]
 
 
+def equal_error(accuracy):
+    """Each adaptive build against fixed sampling at the same median column error: the fixed
+    curve with the adaptive build's pixel samples, interpolated log-log between its points."""
+    out = []
+    for r in (r for r in accuracy if r["adaptive"]):
+        fixed = sorted((f for f in accuracy if not f["adaptive"] and f["pixel_samples"] == r["pixel_samples"]),
+                       key=lambda f: -f["median_column_error"])
+        errs = np.log([f["median_column_error"] for f in fixed])
+        err = np.log(r["median_column_error"])
+        if len(fixed) < 2 or not errs[-1] <= err <= errs[0]:
+            continue  # outside the fixed curve: no equal-error time without extrapolating
+        t = float(np.exp(np.interp(-err, -errs, np.log([f["seconds"] for f in fixed]))))
+        out.append(dict(samples=r["samples"], pixel_samples=r["pixel_samples"], seconds=r["seconds"],
+                        median_column_error=r["median_column_error"], fixed_seconds=t, speedup=t / r["seconds"]))
+    return out
+
+
 def raw_embree_rate(setup, rays: int, seed=0):
     """Occlusion queries per second of embreex on `rays` rays from the observed surface points."""
     caster = RayCaster(setup.scene)
@@ -150,8 +167,8 @@ def main(argv=None):
     rows = Table()
 
     build(setup, hj.EnvGrid(4, 8), samples=1, pixel_samples=1)  # warm-up (JAX, Embree), not timed
-    # 1. throughput against raw Embree, same number of (pixel, direction-sample) pairs
-    T, t = build(setup, grid, samples=16, pixel_samples=1)
+    # 1. throughput against raw Embree, same number of (pixel, direction-sample) pairs (fixed sampling)
+    T, t = build(setup, grid, samples=16, pixel_samples=1, adaptive=False)
     pairs = T.A.shape[0] * grid.size * 16
     raw = raw_embree_rate(setup, pairs)
     results["throughput"] = dict(pairs=pairs, build_seconds=t, pairs_per_second=pairs / t,
@@ -169,19 +186,28 @@ def main(argv=None):
 
     # 3. accuracy vs time, against a reference converged in directions and footprint
     subset = np.random.default_rng(3).random((size, size)) < 0.125
-    ref, t_ref = build(setup, grid, samples=16 if q else 32, pixel_samples=16, seed=1, mask=subset)
+    ref, t_ref = build(setup, grid, samples=16 if q else 32, pixel_samples=16, seed=1, mask=subset, adaptive=False)
     results["reference"] = dict(samples=16 if q else 32, pixel_samples=16, pixels=int(ref.A.shape[0]), seconds=t_ref)
     results["scaling"], results["accuracy"] = [], []
-    for px, sample_counts in ((1, (2, 4, 8, 16, 32)), (4, (2, 4, 8, 16)), (9, (2, 4))):
+    curves = [(False, 1, (2, 4, 8, 16, 32)), (False, 4, (2, 4, 8, 16)), (False, 9, (2, 4)),
+              (True, 1, (4, 8, 16, 32)), (True, 4, (4, 8, 16, 32)), (True, 9, (4, 8))]
+    for adaptive, px, sample_counts in curves:
         for S in sample_counts:
-            T_s, t_s = build(setup, grid, samples=S, pixel_samples=px, seed=0)
+            T_s, t_s = build(setup, grid, samples=S, pixel_samples=px, seed=0, adaptive=adaptive)
             err = float(np.median(column_errors(*common_rows(T_s, ref))))
-            results["accuracy"].append(dict(samples=S, pixel_samples=px, seconds=t_s, median_column_error=err))
-            rows.append((f"samples={S}, pixel_samples={px}", f"{t_s:.2f} s", f"median column err {100 * err:.2f}%", ""))
+            results["accuracy"].append(dict(samples=S, pixel_samples=px, adaptive=adaptive, seconds=t_s,
+                                            median_column_error=err))
+            rows.append((f"{'adaptive' if adaptive else 'fixed'} samples={S}, pixel_samples={px}", f"{t_s:.2f} s",
+                         f"median column err {100 * err:.2f}%", ""))
+    results["equal_error"] = equal_error(results["accuracy"])
+    for r in results["equal_error"]:
+        rows.append((f"adaptive S={r['samples']}, px={r['pixel_samples']} vs fixed", f"{r['seconds']:.2f} s",
+                     f"fixed needs {r['fixed_seconds']:.1f} s at {100 * r['median_column_error']:.2f}%",
+                     f"{r['speedup']:.1f}x faster at equal error"))
     small = hj.scenes.object_on_plane("teapot", width=size // 2, height=size // 2)
     coarse = hj.EnvGrid(grid.height // 2, grid.width // 2)
     for label, s, g in (("pixels / 4", small, grid), ("grid / 4", setup, coarse)):
-        _, t_x = build(s, g, samples=16, pixel_samples=1)
+        _, t_x = build(s, g, samples=16, pixel_samples=1, adaptive=False)
         results["scaling"].append(dict(change=label, seconds=t_x, ratio_to_full=t_x / t))
         rows.append((f"{label} (S=16)", f"{t_x:.2f} s", f"{t_x / t:.2f}x the full build", ""))
 
@@ -189,17 +215,24 @@ def main(argv=None):
     img_size = 32 if q else 64
     dsetup = hj.scenes.object_on_plane("teapot", width=img_size, height=img_size)
     env = grid.downsample(hj.scenes.procedural_sky(128, 256))
-    Td, t_d = build(dsetup, grid)
-    Tr, _ = build(dsetup, grid, samples=32 if q else 128, pixel_samples=hj.transport.DEFAULT_PIXEL_SAMPLES, seed=7)
-    both = Td.mask & Tr.mask
-    a, b = np.asarray(hj.render(Td, env))[both], np.asarray(hj.render(Tr, env))[both]
-    mc = float(np.linalg.norm(a - b) / np.linalg.norm(b))
-    results["defaults"] = dict(samples=hj.transport.DEFAULT_SAMPLES, pixel_samples=hj.transport.DEFAULT_PIXEL_SAMPLES,
-                               render_relrmse_vs_high_sample=mc, image=img_size)
-    _, t_default = build(setup, grid)
-    results["defaults"]["seconds_full_size"] = t_default
-    rows.append((f"defaults S={hj.transport.DEFAULT_SAMPLES}, px={hj.transport.DEFAULT_PIXEL_SAMPLES}",
-                 f"{t_default:.2f} s", f"render MC error {100 * mc:.2f}%", "(includes footprint noise)"))
+    Tr, _ = build(dsetup, grid, samples=32 if q else 128, pixel_samples=hj.transport.DEFAULT_PIXEL_SAMPLES, seed=7,
+                  adaptive=False)
+    results["defaults"] = {}
+    for adaptive in (True, False):
+        errors = []
+        for seed in range(3):  # the error of one build is itself noisy: three seeds
+            Td, _ = build(dsetup, grid, seed=seed, adaptive=adaptive)
+            both = Td.mask & Tr.mask
+            a, b = np.asarray(hj.render(Td, env))[both], np.asarray(hj.render(Tr, env))[both]
+            errors.append(float(np.linalg.norm(a - b) / np.linalg.norm(b)))
+        _, t_default = build(setup, grid, adaptive=adaptive)
+        name = "adaptive" if adaptive else "fixed"
+        results["defaults"][name] = dict(
+            samples=hj.transport.DEFAULT_SAMPLES, pixel_samples=hj.transport.DEFAULT_PIXEL_SAMPLES, image=img_size,
+            render_relrmse_vs_high_sample=float(np.mean(errors)), seeds=errors, seconds_full_size=t_default)
+        rows.append((f"defaults S={hj.transport.DEFAULT_SAMPLES}, px={hj.transport.DEFAULT_PIXEL_SAMPLES}, {name}",
+                     f"{t_default:.2f} s", f"render MC error {100 * np.mean(errors):.2f}% (3 seeds)",
+                     "(includes footprint noise)"))
 
     # 5. Mitsuba 3, the user's alternative, on the same scene
     mit = None if args.no_mitsuba else mitsuba_columns(
@@ -225,10 +258,11 @@ def main(argv=None):
     (args.out / "results.json").write_text(json.dumps(results, indent=2, default=float))
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    for px, marker in ((1, "o-"), (4, "^-"), (9, "v-")):
-        acc = [r for r in results["accuracy"] if r["pixel_samples"] == px]
+    for (adaptive, px), marker in (((False, 1), "o-"), ((False, 4), "^-"), ((False, 9), "v-"),
+                                   ((True, 1), "o--"), ((True, 4), "^--"), ((True, 9), "v--")):
+        acc = [r for r in results["accuracy"] if r["pixel_samples"] == px and r["adaptive"] == adaptive]
         ax.loglog([r["seconds"] for r in acc], [100 * r["median_column_error"] for r in acc], marker,
-                  label=f"hiddenjax, pixel_samples={px}")
+                  label=f"hiddenjax {'adaptive' if adaptive else 'fixed'}, pixel_samples={px}")
         for r in acc:
             ax.annotate(f"S={r['samples']}", (r["seconds"], 100 * r["median_column_error"]), fontsize=8)
     if mit and "per_spp" in mit:

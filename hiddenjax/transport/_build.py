@@ -39,6 +39,7 @@ def transport_matrix(
     bounces: int = 0,
     bounce_samples: int = 1,
     keep_occluder: bool = False,
+    adaptive: bool = True,
     threads: int | None = None,
     max_bytes: int | str = DEFAULT_MAX_BYTES,
     progress: bool = True,
@@ -59,6 +60,12 @@ def transport_matrix(
       stream, so the result does not depend on the chunk order).
     - `bounces`: 0 is direct light; `k >= 1` adds `k` diffuse interreflections along
       `bounce_samples` cosine-weighted paths per footprint sample.
+    - `adaptive`: trace each (pixel, env pixel) pair with 4 coarse rays first (one per
+      footprint sample, each towards its own quarter of the env pixel) and with the full
+      `pixel_samples x samples` only where they disagree (a shadow edge crosses the pair); a pair
+      they agree on is unoccluded (exact) or wholly occluded (0). Its bias, from partly occluded
+      pairs that all four rays miss, is measured in docs/benchmarks.md. `False`: every pair
+      near an occluder gets the full samples.
     - `threads`: chunks in flight at once (default: the number of cores). Numpy releases the GIL,
       so Embree queries of one chunk overlap the arithmetic of another; results do not depend
       on it.
@@ -75,7 +82,7 @@ def transport_matrix(
     threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
     guard(need_dense(camera, grid, pixel_samples, mask, threads), budget, "max_bytes",
           "use a smaller grid or fewer pixels (mask, a smaller image), or hj.transport_operator (matrix-free)")
-    plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder)
+    plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder, adaptive)
     P, N, S = plan.P, plan.N, plan.S
     need = P * N * 4
     if need > budget:
@@ -169,8 +176,8 @@ class BuildPlan:
     which order.
     """
 
-    def __init__(self, scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder):
-        self.lighting = DirectLighting(scene, grid, samples)
+    def __init__(self, scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder, adaptive=True):
+        self.lighting = DirectLighting(scene, grid, samples, adaptive)
         self.H, self.W, self.S = camera.height, camera.width, pixel_samples
         hits, directions = primary_hits(self.lighting.caster, camera, self.S, seed)
         self.pixels = _observed_pixels(scene, hits, (self.H, self.W), self.S, mask, keep_occluder)

@@ -13,6 +13,16 @@ For a point `x` with normal `n` and env pixel `j`, the row entry (before `albedo
 own points); every other sample is visible by construction. The `S` samples are stratified in
 the pixel and independent per point.
 
+Adaptive (`adaptive=True`): an env pixel wholly above the horizon of a diffuse point, inside an
+occluder's cone, is first traced coarsely per camera pixel (the `group` footprint points of one
+pixel): `COARSE = 4` rays in all, towards the midpoints of the env pixel's 2 x 2 quarters, the
+footprint points taking them in turn. If every ray is unoccluded the pair's term is 0 (exact
+when the whole pair is unoccluded); if every one is occluded, and every footprint point of the
+pixel is in the cone, `E_j = 0`; otherwise the pair gets the `S` samples above. Straddling and
+glossy pairs always get them. The estimate is unbiased on the pairs that are refined; a pair
+partly occluded that all coarse rays call unoccluded (or occluded) keeps a bias of at most its
+occluded (unoccluded) part, measured in docs/benchmarks.md.
+
 Glossy surfaces (`Surface(roughness=...)`, `scene._gloss`) seen from a view direction `v`: the
 diffuse base weights each direction by `t(n.w) n.w` instead of `n.w` (its unoccluded part by a
 fixed quadrature per distinct normal, the occluded part by the same samples), and the specular lobe
@@ -38,10 +48,11 @@ _LOBE_POINTS = 32  # glossy points per block of the lobe's quadrature: (32, N, 6
 class DirectLighting:
     """Per-grid and per-scene constants for `rows`, built once per transport-matrix call."""
 
-    def __init__(self, scene: Scene, grid: EnvGrid, samples: int):
+    def __init__(self, scene: Scene, grid: EnvGrid, samples: int, adaptive: bool = True):
         self.caster = RayCaster(scene)
         self.grid = grid
         self.samples = int(samples)
+        self.adaptive = bool(adaptive)
         self.centres = grid.directions().reshape(-1, 3)
         self.moments = grid.direction_moments().reshape(-1, 3)
         self.omega = grid.solid_angles().reshape(-1)
@@ -61,7 +72,8 @@ class DirectLighting:
         """`E (M, N)` float64 for points `x (M, 3)` (already offset), unit normals `n (M, 3)`.
 
         `surface (M,)` is the index of the surface each point lies on. Returns `(E, rays)` with
-        the number of Embree occlusion queries issued. Every surface is taken as diffuse.
+        the number of Embree occlusion queries issued. Every surface is taken as diffuse; each
+        point is its own group (module docstring, "Adaptive").
         """
         split = self.split_rows(x, n, surface, rng)
         E = split.closed[split.which]
@@ -73,7 +85,7 @@ class DirectLighting:
         `view (M, 3)` (towards the camera): `albedo/pi E` on diffuse surfaces, the glossy material's
         diffuse base and lobe on glossy ones (module docstring). `group` consecutive points share one
         pixel (its footprint samples): the lobe's unoccluded part is evaluated once per group."""
-        split = self.split_rows(x, n, surface, rng, view=view)
+        split = self.split_rows(x, n, surface, rng, view=view, group=group)
         E = split.closed[split.which]
         E[split.m, split.j] += split.delta
         out = (albedo / np.pi)[:, None] * E
@@ -150,7 +162,7 @@ class DirectLighting:
         above, _ = self.grid.horizon_classes(normals)
         return np.where(above, normals @ self.moments.T, 0.0)
 
-    def split_rows(self, x, n, surface, rng: np.random.Generator, view=None) -> "SplitRows":
+    def split_rows(self, x, n, surface, rng: np.random.Generator, view=None, group: int = 1) -> "SplitRows":
         """`E = closed[which] + sparse(m, j, delta)`: the rows of `rows` as their two parts.
 
         `closed (K, N)` is the unoccluded closed form of the `K` distinct normals (`which (M,)`
@@ -161,6 +173,11 @@ class DirectLighting:
         With `view (M, 3)`, points on glossy surfaces weight directions by `t(n.w) n.w` (their
         `closed` part by quadrature) and `lobe_delta` holds the lobe's occluded samples at the same
         pairs (module docstring); without, every surface is taken as diffuse.
+
+        `group` consecutive points are one pixel's footprint samples: with `adaptive`, a diffuse
+        pair wholly above the horizon is first traced with `COARSE` rays per (pixel, env pixel),
+        and only where those disagree with the full `samples` per point (module docstring).
+        Pairs found unoccluded are left out of `(m, j, delta)` (their `delta` is 0).
         """
         M, N, S = len(x), self.grid.size, self.samples
         glossy = self.glossy[surface] if view is not None else np.zeros(M, bool)
@@ -219,19 +236,29 @@ class DirectLighting:
         delta = np.zeros(len(m_idx))
         lobe_delta = np.zeros(len(m_idx)) if np.any(glossy) else None
         rays = 0
+        todo = slice(None)  # the pairs estimated with `samples` directions per point
+        if self.adaptive and max(1, -(-4 // group)) < S:  # fewer coarse rays per point than samples
+            easy = np.nonzero(~straddle[m_idx, j_idx] & ~glossy[m_idx])[0]
+            m, j = m_idx[easy], j_idx[easy]
+            verdict, outline, rays = self._coarse(x, n, m, j, cones, group, 2)
+            check = np.nonzero((verdict != -1) & outline)[0]  # on the outline: 16 rays more
+            again, _, more = self._coarse(x, n, m[check], j[check], cones, group, 4)
+            verdict[check] = np.where(again == verdict[check], again, -1)
+            rays += more
+            shut = easy[verdict == 1]
+            delta[shut] = -closed[which[m_idx[shut]], j_idx[shut]]  # E = 0
+            todo = np.ones(len(m_idx), dtype=bool)
+            todo[easy[verdict != -1]] = False
+            todo = np.nonzero(todo)[0]
+        pairs = np.arange(len(m_idx))[todo]
         per_block = max(1, _BLOCK // S)
-        for start in range(0, len(m_idx), per_block):
-            m, j = m_idx[start : start + per_block], j_idx[start : start + per_block]
+        for start in range(0, len(pairs), per_block):
+            at = pairs[start : start + per_block]
+            m, j = m_idx[at], j_idx[at]
             w = self.grid.sample_directions(j[:, None], stratified_square(rng, len(m), S, np.float32))  # (K,S,3)
             cos = np.einsum("kc,ksc->ks", n[m], w)
-            in_cone = np.zeros(cos.shape, dtype=bool)
-            for active, axis, cos_alpha in cones:
-                in_cone |= active[m, None] & (np.einsum("kc,ksc->ks", axis[m], w) >= cos_alpha[m, None])
-            trace = in_cone & (cos > 0)
-            occluded = np.zeros(cos.shape, dtype=bool)
-            kk, ss = np.nonzero(trace)
-            occluded[kk, ss] = self.caster.occluded(x[m[kk]], w[kk, ss])
-            rays += len(kk)
+            occluded, traced = self._trace(x, m, w, cones, cos > 0)
+            rays += traced
             weight = cos
             if lobe_delta is not None:  # glossy points: t(n.w) n.w, and the lobe's occluded samples
                 weight = cos.astype(np.float64)
@@ -243,13 +270,59 @@ class DirectLighting:
                     cos_v = np.einsum("kc,kc->k", n[m[on]], view[m[on]])
                     lobe, _ = _lobe_at(n[m[on]][:, None, :], view[m[on]][:, None, :], cos_v[:, None], w[on],
                                        g.roughness, g.ior)
-                    lobe_delta[start + np.nonzero(on)[0]] = -self.omega[j[on]] / S * np.sum(lobe * occluded[on], axis=1)
+                    lobe_delta[at[on]] = -self.omega[j[on]] / S * np.sum(lobe * occluded[on], axis=1)
             term = np.where(
                 straddle[m, j][:, None], np.where(occluded, 0.0, np.maximum(weight, 0.0)),
                 np.where(occluded, -weight, 0.0)
             )
-            delta[start : start + len(m)] = self.omega[j] / S * term.sum(axis=1)
-        return SplitRows(closed, which, m_idx, j_idx, delta, rays, lobe_delta)
+            delta[at] = self.omega[j] / S * term.sum(axis=1)
+        keep = delta != 0
+        if lobe_delta is not None:
+            keep |= lobe_delta != 0
+            lobe_delta = lobe_delta[keep]
+        return SplitRows(closed, which, m_idx[keep], j_idx[keep], delta[keep], rays, lobe_delta)
+
+    def _trace(self, x, m, w, cones, facing):
+        """`(occluded (K, s), rays)`: Embree's verdict on the directions `w (K, s, 3)` from the points
+        `x[m]` that face them (`facing (K, s)`) and point into an occluder's bounding cone; every
+        other direction is unoccluded by construction."""
+        in_cone = np.zeros(w.shape[:2], dtype=bool)
+        for active, axis, cos_alpha in cones:
+            in_cone |= active[m, None] & (np.einsum("kc,ksc->ks", axis[m], w) >= cos_alpha[m, None])
+        occluded = np.zeros(w.shape[:2], dtype=bool)
+        kk, ss = np.nonzero(in_cone & facing)
+        occluded[kk, ss] = self.caster.occluded(x[m[kk]], w[kk, ss])
+        return occluded, len(kk)
+
+    def _coarse(self, x, n, m, j, cones, group: int, k: int):
+        """`(verdict (K,), outline (K,), rays)` of the pairs `(m, j)` from `k^2` rays per (pixel, env
+        pixel) pair towards the midpoints of a `k x k` split of the env pixel, the pixel's `group`
+        footprint points taking them in turn along the split's diagonals (each point's rays cover
+        every row and column of the split when `k^2 / group >= k`).
+
+        `verdict` is 0 when every ray of the pair's pixel is unoccluded, 1 when every one is
+        occluded and every footprint point of the pixel is in an occluder's cone, else -1;
+        `outline` is True where an adjacent env pixel of the same camera pixel has another
+        verdict (`_uniform_around`). A point outside every occluder's cone counts as unoccluded.
+        """
+        if len(m) == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), 0
+        N = self.grid.size
+        per_point = max(1, -(-k * k // group))
+        strata = _diagonal_order(k)[((m % group)[:, None] * per_point + np.arange(per_point)) % (k * k)]
+        w = self._cell_points(k)[j[:, None], strata]  # (K, per_point, 3)
+        occluded, rays = self._trace(x, m, w, cones, np.einsum("kc,ksc->ks", n[m], w) > 0)
+        key = (m // group) * N + j
+        size = int(key.max()) + 1
+        shut = np.bincount(key, occluded.sum(axis=1), minlength=size)
+        points = np.bincount(key, minlength=size)  # the pixel's points that are pairs with env pixel j
+        whole = shut == points * per_point
+        pixel = np.arange(size) // N
+        whole &= points == np.minimum(group, len(x) - pixel * group)  # no point of the pixel sure to see j
+        field = np.where(shut == 0, 0, np.where(whole, 1, -1))
+        field = np.concatenate([field, np.zeros(-size % N, field.dtype)]).reshape(-1, *self.grid.shape)
+        outline = ~_uniform_around(field).reshape(-1)[key]
+        return field.reshape(-1)[key], outline, rays
 
     def _weighted_closed(self, normal, gloss, above) -> np.ndarray:
         """`(N,)`: `integral over Omega_j of t(n.w) n.w dw` for the cells wholly above the horizon of
@@ -273,6 +346,24 @@ class SplitRows(NamedTuple):
     delta: np.ndarray  # (nnz,) float64
     rays: int
     lobe_delta: np.ndarray | None = None  # (nnz,) the glossy lobe's occluded part (with a view)
+
+
+def _diagonal_order(k: int) -> np.ndarray:
+    """The `k x k` strata (flat `a k + b`) ordered by diagonal `(b - a) mod k`: any `k` consecutive
+    ones starting at a multiple of `k` cover every row and every column once."""
+    a, b = np.divmod(np.arange(k * k), k)
+    return np.argsort(((b - a) % k) * k + a, kind="stable")
+
+
+def _uniform_around(field: np.ndarray) -> np.ndarray:
+    """`(..., H, W)` bool: does each env pixel's verdict equal its four neighbours' (the azimuth
+    wraps around; the poles' rows compare with themselves)? A pair whose neighbour differs lies on
+    the occluder's outline, where a partly occluded env pixel can slip between the coarse rays."""
+    same = field == np.roll(field, 1, axis=-1)
+    same &= field == np.roll(field, -1, axis=-1)
+    same[..., 1:, :] &= field[..., 1:, :] == field[..., :-1, :]
+    same[..., :-1, :] &= field[..., :-1, :] == field[..., 1:, :]
+    return same
 
 
 def _dot(a, b):

@@ -107,9 +107,9 @@ class TransportOperator(PixelRows):
         """Sparse rows `C` of chunk `i` (with the closed part too when it is not low-rank), and its rays."""
         plan = self._plan
         pts = plan.chunk_points(i)
-        split = plan.lighting.split_rows(pts.position, pts.normal, pts.surface,
-                                         np.random.default_rng([self.seed, 1, i]))
         S = plan.S
+        split = plan.lighting.split_rows(pts.position, pts.normal, pts.surface,
+                                         np.random.default_rng([self.seed, 1, i]), group=S)
         weight = pts.albedo / (np.pi * S)
         rows, cols, vals = split.m // S, split.j, weight[split.m] * split.delta
         if not self._low_rank:
@@ -361,6 +361,7 @@ def transport_operator(
     memory: int | str = DEFAULT_MEMORY,
     cache: int | str | None = None,
     keep_occluder: bool = False,
+    adaptive: bool = True,
     threads: int | None = None,
     progress: bool = True,
     products: str = "auto",
@@ -394,7 +395,7 @@ def transport_operator(
     threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
     guard(need_setup(camera, grid, pixel_samples, threads), budget, "memory",
           "use fewer pixels (a smaller image) or fewer pixel_samples, or a coarser grid")
-    plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder)
+    plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder, adaptive)
     cache = None if cache is None else parse_memory(cache, "cache")
     return TransportOperator(plan, samples, seed, budget, cache, threads, progress, products)
 
