@@ -151,6 +151,28 @@ def mitsuba_columns(setup, grid, T_mask, spps, ref_spp, n_columns, seed=0):
     return out
 
 
+def plot_accuracy(results, path):
+    """Median column error against build time: fixed (solid) and adaptive (dashed) per footprint
+    samples, one colour each, and Mitsuba's path tracer."""
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    for px, colour, marker in ((1, "C0", "o"), (4, "C1", "^"), (9, "C2", "v")):
+        for adaptive in (False, True):
+            acc = [r for r in results["accuracy"] if r["pixel_samples"] == px and r["adaptive"] == adaptive]
+            ax.loglog([r["seconds"] for r in acc], [100 * r["median_column_error"] for r in acc],
+                      marker + ("--" if adaptive else "-"), color=colour,
+                      label=f"{'adaptive' if adaptive else 'fixed'}, pixel_samples={px}")
+            for r in acc:
+                ax.annotate(f"S={r['samples']}", (r["seconds"], 100 * r["median_column_error"]), fontsize=7)
+    mit = results.get("mitsuba")
+    if isinstance(mit, dict) and "per_spp" in mit:
+        ms = mit["per_spp"]
+        ax.loglog([m["seconds_all_columns"] for m in ms.values()], [100 * m["median_column_error"] for m in ms.values()],
+                  "s-", color="C4", label=f"Mitsuba 3 path ({mit['variant']})")
+    c = results["config"]
+    finish_plot(fig, ax, path, "seconds for all columns", "median column error (%)",
+                f"{c['image']}x{c['image']} px, {c['grid'][0]}x{c['grid'][1]} grid, {c['occluder_faces']}-face teapot")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/bench_transport"))
@@ -257,20 +279,7 @@ def main(argv=None):
     rows.print_all()
     (args.out / "results.json").write_text(json.dumps(results, indent=2, default=float))
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for (adaptive, px), marker in (((False, 1), "o-"), ((False, 4), "^-"), ((False, 9), "v-"),
-                                   ((True, 1), "o--"), ((True, 4), "^--"), ((True, 9), "v--")):
-        acc = [r for r in results["accuracy"] if r["pixel_samples"] == px and r["adaptive"] == adaptive]
-        ax.loglog([r["seconds"] for r in acc], [100 * r["median_column_error"] for r in acc], marker,
-                  label=f"hiddenjax {'adaptive' if adaptive else 'fixed'}, pixel_samples={px}")
-        for r in acc:
-            ax.annotate(f"S={r['samples']}", (r["seconds"], 100 * r["median_column_error"]), fontsize=8)
-    if mit and "per_spp" in mit:
-        ms = mit["per_spp"]
-        ax.loglog([m["seconds_all_columns"] for m in ms.values()], [100 * m["median_column_error"] for m in ms.values()],
-                  "s-", label=f"Mitsuba 3 path ({mit['variant']})")
-    finish_plot(fig, ax, args.out / "accuracy_vs_time.png", "seconds for all columns", "median column error (%)",
-                f"{size}x{size} px, {grid.height}x{grid.width} grid, {faces}-face teapot")
+    plot_accuracy(results, args.out / "accuracy_vs_time.png")
     return results
 
 

@@ -177,3 +177,27 @@ def test_cosine_directions_follow_the_cosine_law():
     assert np.allclose(np.linalg.norm(w, axis=-1), 1) and np.all(cos >= 0)
     # pdf cos/pi: E[cos] = 2/3 and E[cos^2] = 1/2
     assert np.allclose(cos.mean(axis=1), 2 / 3, atol=0.01) and np.allclose((cos**2).mean(axis=1), 0.5, atol=0.01)
+
+
+def test_clipped_cosine_is_the_cosine_integral_over_the_lit_part_of_a_pixel():
+    """Against a 64 x 64 midpoint quadrature on pixels the horizon cuts, the exact moments on pixels
+    wholly above, and 0 on pixels wholly below."""
+    grid = hj.EnvGrid(16, 32)
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(200, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    omega = grid.solid_angles().reshape(-1)
+    above, straddle = grid.horizon_classes(n)
+    m, j = np.nonzero(straddle)
+    k = 64
+    u = (np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), -1).reshape(-1, 2) + 0.5) / k
+    w = grid.sample_directions(j[:, None], np.broadcast_to(u, (len(j), k * k, 2)))
+    dense = np.maximum(0, np.einsum("kc,ksc->ks", n[m], w)).mean(axis=1) * omega[j]
+    got = grid.clipped_cosine(n[m], j)
+    assert np.max(np.abs(got - dense) / omega[j]) < 2e-3
+    assert np.median(np.abs(got - dense) / omega[j]) < 1e-4
+    m, j = np.nonzero(above)
+    moments = np.einsum("kc,kc->k", n[m], grid.direction_moments().reshape(-1, 3)[j])
+    np.testing.assert_allclose(grid.clipped_cosine(n[m], j), moments, atol=2e-4 * omega.max())
+    m, j = np.nonzero(~above & ~straddle)
+    assert np.all(grid.clipped_cosine(n[m], j) == 0)

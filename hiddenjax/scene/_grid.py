@@ -100,6 +100,42 @@ class EnvGrid(eqx.Module):
         z = -s2 * (np.sin(phi1) - np.sin(phi0))
         return np.stack([x, y, z], axis=-1)
 
+    def clipped_cosine(self, normals, pixels, order: int = 4) -> np.ndarray:
+        """`integral over pixel j of max(0, n.w) dw` for pairs of unit normals `(K, 3)` and flat
+        pixel indices `(K,)`: the unoccluded cosine integral of a pixel the horizon cuts.
+
+        With `z = cos theta`, `dw = dz dphi` and `n.w = n_y z + sqrt(1 - z^2) r cos(phi - phi_0)`
+        (`r = |(n_x, n_z)|`, `phi_0 = atan2(n_x, -n_z)`), so the `phi` integral of the clipped
+        cosine is closed-form (`a (u - l) + b (sin u - sin l)` over the arcs where it is
+        positive) and the `z` integral is Gauss-Legendre with `order` points (smooth in `z` but
+        where the horizon is tangent to the pixel: within 1e-3 of the pixel's solid angle at the
+        default `order` on 32x64 cells, against a dense quadrature, and 1e-4 in the median).
+        """
+        n = np.asarray(normals, dtype=np.float64)
+        i, j = np.divmod(np.asarray(pixels), self.width)
+        edges = np.cos(self.theta_edges())
+        z0, z1 = edges[i + 1], edges[i]  # z decreases with theta
+        dphi = 2 * np.pi / self.width
+        r = np.hypot(n[:, 0], n[:, 2])
+        phi0 = np.arctan2(n[:, 0], -n[:, 2])
+        lo = np.mod(j * dphi - phi0 + np.pi, 2 * np.pi) - np.pi  # the pixel's azimuths as psi = phi - phi0
+        hi = lo + dphi
+        nodes, weights = np.polynomial.legendre.leggauss(order)
+        out = np.zeros(len(n))
+        for t, wt in zip(nodes, weights):
+            z = z0 + (t + 1) / 2 * (z1 - z0)
+            a, b = n[:, 1] * z, r * np.sqrt(np.maximum(0.0, 1 - z * z))
+            whole = a >= b  # positive at every azimuth
+            alpha = np.arccos(np.clip(-a / np.maximum(b, 1e-300), -1.0, 1.0))  # a + b cos(psi) > 0 on |psi| < alpha
+            alpha = np.where(whole | (a <= -b), 0.0, alpha)
+            f = np.where(whole, a * dphi + b * (np.sin(hi) - np.sin(lo)), 0.0)
+            for centre in (0.0, 2 * np.pi):  # the arcs about psi = 0 and psi = 2 pi (hi < 3 pi)
+                u = np.minimum(hi, centre + alpha)
+                l = np.maximum(lo, centre - alpha)
+                f += np.where(u > l, a * (u - l) + b * (np.sin(u - centre) - np.sin(l - centre)), 0.0)
+            out += wt / 2 * (z1 - z0) * f
+        return out
+
     def angular_radius(self) -> np.ndarray:
         """Largest angle between a pixel's centre direction and any point of it, `(H, W)`.
 

@@ -4,24 +4,25 @@ For a point `x` with normal `n` and env pixel `j`, the row entry (before `albedo
 `E_j = integral over Omega_j of V(x, w) max(0, n.w) dw`. It is evaluated as
 
 - pixel wholly below the horizon: 0, no rays;
-- pixel wholly above: `n . integral(w dw)` in closed form minus a Monte Carlo estimate of the
-  occluded part, `(Omega_j/S) sum_k (1 - V_k) n.w_k`; exact when nothing can occlude;
-- pixel straddling the horizon: `(Omega_j/S) sum_k V_k max(0, n.w_k)`.
+- otherwise its unoccluded integral (`n . integral(w dw)` in closed form for a pixel wholly
+  above, `EnvGrid.clipped_cosine` for one the horizon cuts) minus a Monte Carlo estimate of the
+  occluded part, `(Omega_j/S) sum_k (1 - V_k) max(0, n.w_k)`; exact when nothing can occlude.
 
 `V_k` needs an Embree query only when `w_k` points into the bounding cone of an occluder
 (a surface other than a planar or closed convex one the point lies on: those cannot shadow their
 own points); every other sample is visible by construction. The `S` samples are stratified in
 the pixel and independent per point.
 
-Adaptive (`adaptive=True`): an env pixel wholly above the horizon of a diffuse point, inside an
-occluder's cone, is first traced coarsely per camera pixel (the `group` footprint points of one
-pixel): `COARSE = 4` rays in all, towards the midpoints of the env pixel's 2 x 2 quarters, the
-footprint points taking them in turn. If every ray is unoccluded the pair's term is 0 (exact
+Adaptive (`adaptive=True`): an env pixel inside an occluder's cone, seen from a diffuse point,
+is first traced coarsely per camera pixel (the `group` footprint points of one pixel): 4 rays in
+all, towards the midpoints of the env pixel's 2 x 2 quarters, the footprint points taking them in
+turn. Where an adjacent env pixel got another verdict (the occluder's outline), 16 rays more,
+towards the midpoints of its 4 x 4 split. If every ray is unoccluded the pair's term is 0 (exact
 when the whole pair is unoccluded); if every one is occluded, and every footprint point of the
-pixel is in the cone, `E_j = 0`; otherwise the pair gets the `S` samples above. Straddling and
-glossy pairs always get them. The estimate is unbiased on the pairs that are refined; a pair
-partly occluded that all coarse rays call unoccluded (or occluded) keeps a bias of at most its
-occluded (unoccluded) part, measured in docs/benchmarks.md.
+pixel is in the cone, `E_j = 0`; otherwise the pair gets the `S` samples above. Glossy pairs
+always get them. The estimate is unbiased on the pairs that are refined; a pair partly occluded
+that all coarse rays call unoccluded (or occluded) keeps a bias of at most its occluded
+(unoccluded) part, measured in docs/benchmarks.md.
 
 Glossy surfaces (`Surface(roughness=...)`, `scene._gloss`) seen from a view direction `v`: the
 diffuse base weights each direction by `t(n.w) n.w` instead of `n.w` (its unoccluded part by a
@@ -56,6 +57,7 @@ class DirectLighting:
         self.centres = grid.directions().reshape(-1, 3)
         self.moments = grid.direction_moments().reshape(-1, 3)
         self.omega = grid.solid_angles().reshape(-1)
+        self.sin_beta = np.sin(grid.angular_radius().reshape(-1)) + 1e-9  # the horizon band's half-width
         beta = grid.angular_radius().reshape(-1) + 1e-6
         self.beta_rad = beta
         self.cos_beta32 = np.cos(beta).astype(np.float32)[None, :]
@@ -147,36 +149,44 @@ class DirectLighting:
         return out
 
     def _horizon(self, normals):
-        """`(above (K, N), straddle (K, N), closed (K, N))` of distinct normals; cached for planar receivers."""
+        """`(lit (K, N), closed (K, N))` of distinct normals: the env pixels not wholly below each
+        horizon (and a few that are, next to it) and their unoccluded term `integral max(0, n.w) dw`;
+        cached for planar receivers.
+
+        A pixel's directions lie within its angular radius `beta_j` of its centre `c_j`: with
+        `n.c_j >= sin(beta_j)` it is wholly above (`n . moment`), with `n.c_j <= -sin(beta_j)`
+        wholly below (0); the band between gets `EnvGrid.clipped_cosine`."""
         key = normals.tobytes() if len(normals) <= 4 else None
         if key in self._horizons:
             return self._horizons[key]
-        above, straddle = self.grid.horizon_classes(normals)
-        out = (above, straddle, np.where(above, normals @ self.moments.T, 0.0))
+        centre = normals @ self.centres.T
+        closed = np.where(centre >= self.sin_beta, normals @ self.moments.T, 0.0)
+        m, j = np.nonzero(np.abs(centre) < self.sin_beta)
+        closed[m, j] = self.grid.clipped_cosine(normals[m], j)
+        out = (centre > -self.sin_beta, closed)
         if key is not None and len(self._horizons) < 64:
             self._horizons[key] = out
         return out
 
     def closed_form(self, normals) -> np.ndarray:
-        """`(K, N)`: `n . integral over Omega_j of w dw` for the pixels wholly above each normal's horizon, else 0."""
-        above, _ = self.grid.horizon_classes(normals)
-        return np.where(above, normals @ self.moments.T, 0.0)
+        """`(K, N)`: `integral over Omega_j of max(0, n.w) dw`, the unoccluded term of each normal."""
+        return self._horizon(np.asarray(normals, dtype=np.float64))[1]
 
     def split_rows(self, x, n, surface, rng: np.random.Generator, view=None, group: int = 1) -> "SplitRows":
         """`E = closed[which] + sparse(m, j, delta)`: the rows of `rows` as their two parts.
 
         `closed (K, N)` is the unoccluded closed form of the `K` distinct normals (`which (M,)`
         picks each point's), the same for every point with that normal; `(m, j, delta)` the
-        Monte Carlo terms, nonzero only where a pixel straddles the horizon or an occluder's cone
-        reaches it (few pairs for a point on a table: the sparse part of the matrix-free operator).
+        Monte Carlo terms of the occluded parts, nonzero only where an occluder's cone reaches a
+        pixel (few pairs for a point on a table: the sparse part of the matrix-free operator).
 
         With `view (M, 3)`, points on glossy surfaces weight directions by `t(n.w) n.w` (their
         `closed` part by quadrature) and `lobe_delta` holds the lobe's occluded samples at the same
         pairs (module docstring); without, every surface is taken as diffuse.
 
         `group` consecutive points are one pixel's footprint samples: with `adaptive`, a diffuse
-        pair wholly above the horizon is first traced with `COARSE` rays per (pixel, env pixel),
-        and only where those disagree with the full `samples` per point (module docstring).
+        pair is first traced with 4 rays per (pixel, env pixel), 16 more on the occluder's
+        outline, and only where those disagree with the full `samples` per point (module docstring).
         Pairs found unoccluded are left out of `(m, j, delta)` (their `delta` is 0).
         """
         M, N, S = len(x), self.grid.size, self.samples
@@ -186,24 +196,24 @@ class DirectLighting:
         if not np.any(glossy):  # diffuse points only: keyed by their normals alone
             normals, which = np.unique(n, axis=0, return_inverse=True)
             which = which.reshape(-1)
-            up, cross, closed = self._horizon(normals)
+            lit, closed = self._horizon(normals)
         else:
             material = np.where(glossy, surface + 1, 0).astype(n.dtype)
             keys, which = np.unique(np.concatenate([n, material[:, None]], axis=1), axis=0, return_inverse=True)
             which = which.reshape(-1)
             normals = np.ascontiguousarray(keys[:, :3])
-            up, cross, closed = self._horizon(normals)
+            lit, closed = self._horizon(normals)
             closed = closed.copy()
             few = len(keys) <= 4  # planar receivers: cached as `_horizon` does; a curved one's are not
             for key in np.nonzero(keys[:, 3] > 0)[0]:
                 cache = (keys[key].tobytes(), "gloss")
                 value = self._horizons.get(cache) if few else None
                 if value is None:
-                    value = self._weighted_closed(normals[key], self.gloss[int(keys[key, 3]) - 1], up[key])
+                    value = self._weighted_closed(normals[key], self.gloss[int(keys[key, 3]) - 1], lit[key])
                     if few and len(self._horizons) < 64:
                         self._horizons[cache] = value
                 closed[key] = value
-        above, straddle = up[which], cross[which]
+        lit = lit[which]
 
         cones = []  # (active (M,), axis (M,3), cos_alpha (M,)) per occluder
         candidate = np.zeros((M, N), dtype=bool)
@@ -232,13 +242,13 @@ class DirectLighting:
             candidate |= (cos_centre >= reach) & active[:, None]
             cones.append((active, axis, cos_a))
 
-        m_idx, j_idx = np.nonzero(straddle | (above & candidate))
+        m_idx, j_idx = np.nonzero(lit & candidate)
         delta = np.zeros(len(m_idx))
         lobe_delta = np.zeros(len(m_idx)) if np.any(glossy) else None
         rays = 0
         todo = slice(None)  # the pairs estimated with `samples` directions per point
         if self.adaptive and max(1, -(-4 // group)) < S:  # fewer coarse rays per point than samples
-            easy = np.nonzero(~straddle[m_idx, j_idx] & ~glossy[m_idx])[0]
+            easy = np.nonzero(~glossy[m_idx])[0]
             m, j = m_idx[easy], j_idx[easy]
             verdict, outline, rays = self._coarse(x, n, m, j, cones, group, 2)
             check = np.nonzero((verdict != -1) & outline)[0]  # on the outline: 16 rays more
@@ -271,10 +281,7 @@ class DirectLighting:
                     lobe, _ = _lobe_at(n[m[on]][:, None, :], view[m[on]][:, None, :], cos_v[:, None], w[on],
                                        g.roughness, g.ior)
                     lobe_delta[at[on]] = -self.omega[j[on]] / S * np.sum(lobe * occluded[on], axis=1)
-            term = np.where(
-                straddle[m, j][:, None], np.where(occluded, 0.0, np.maximum(weight, 0.0)),
-                np.where(occluded, -weight, 0.0)
-            )
+            term = np.where(occluded, -np.maximum(weight, 0.0), 0.0)
             delta[at] = self.omega[j] / S * term.sum(axis=1)
         keep = delta != 0
         if lobe_delta is not None:
@@ -325,12 +332,13 @@ class DirectLighting:
         return field.reshape(-1)[key], outline, rays
 
     def _weighted_closed(self, normal, gloss, above) -> np.ndarray:
-        """`(N,)`: `integral over Omega_j of t(n.w) n.w dw` for the cells wholly above the horizon of
-        `normal`, by a fixed `8 x 8` midpoint quadrature per cell (smooth: `t` varies slowly); else 0."""
+        """`(N,)`: `integral over Omega_j of t(n.w) max(0, n.w) dw` for the cells `above` (or cut by)
+        the horizon of `normal`, by a fixed `8 x 8` midpoint quadrature per cell (smooth: `t` varies
+        slowly); else 0."""
         cells = np.nonzero(above)[0]
         u = (np.stack(np.meshgrid(np.arange(8), np.arange(8), indexing="ij"), -1).reshape(-1, 2) + 0.5) / 8
         w = self.grid.sample_directions(cells[:, None], np.broadcast_to(u, (len(cells), 64, 2)))
-        cos = w @ normal
+        cos = np.maximum(w @ normal, 0.0)
         out = np.zeros(self.grid.size)
         out[cells] = np.mean(cos * gloss.t(cos), axis=1) * self.omega[cells]
         return out
