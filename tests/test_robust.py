@@ -473,3 +473,15 @@ def test_object_rows_pin_the_translation_under_a_sun():
     small = hj.scenes.object_on_plane("teapot", width=16, height=16)
     with pytest.raises(ValueError, match="inside its silhouette"):
         SceneModel.from_scene(small.scene, small.camera, grid, object_rows=2)
+
+
+def test_a_model_average_whose_first_weights_are_zero_is_the_weighted_samples_alone(problem):
+    """Zero weights before the first nonzero one leave the running log-sum-exp at -inf: the average is
+    then the nonzero samples' alone, not NaN (nor a failed factorization)."""
+    setup, grid, model, _, env = problem
+    thetas = SceneUncertainty.of(translation=[2 * MM, 0.0, 2 * MM]).sample(jax.random.key(3), 3)
+    build = lambda th: _embree(setup, model, th)
+    op = hj.solvers.model_average(build, thetas, weights=[0.0, 0.0, 1.0], progress=False)
+    alone = hj.solvers.model_average(build, jax.tree_util.tree_map(lambda a: a[2:], thetas), progress=False)
+    assert np.all(np.isfinite(np.asarray(op.B)))
+    assert relrmse(op.B, alone.B) < 1e-6

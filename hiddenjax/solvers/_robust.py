@@ -131,7 +131,8 @@ def _average(source, thetas, weights, smooth, ridge, absolute, batch, progress, 
 
     def add(acc, G, A, a):  # acc = (max, sum exp, gram, mean); G (b, N, N), A (b, P, N), a (b,) log weights
         top = jnp.maximum(acc[0], jnp.max(a))
-        old, new = jnp.exp(acc[0] - top), jnp.exp(a - top)
+        shift = jnp.where(jnp.isfinite(top), top, 0.0)  # every weight so far 0: exp(-inf), not exp(nan)
+        old, new = jnp.exp(acc[0] - shift), jnp.exp(a - shift)
         return (top, acc[1] * old + jnp.sum(new), acc[2] * old + jnp.einsum("b,bmn->mn", new, G),
                 acc[3] * old + jnp.einsum("b,bpn->pn", new, A))
 
