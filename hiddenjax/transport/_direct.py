@@ -252,9 +252,12 @@ class DirectLighting:
             m, j = m_idx[easy], j_idx[easy]
             verdict, outline, rays = self._coarse(x, n, m, j, cones, group, 2)
             check = np.nonzero((verdict != -1) & outline)[0]  # on the outline: 16 rays more
-            again, _, more = self._coarse(x, n, m[check], j[check], cones, group, 4)
-            verdict[check] = np.where(again == verdict[check], again, -1)
-            rays += more
+            if -(-16 // group) < S:
+                again, _, more = self._coarse(x, n, m[check], j[check], cones, group, 4)
+                verdict[check] = np.where(again == verdict[check], again, -1)
+                rays += more
+            else:  # no fewer than the full samples: take them
+                verdict[check] = -1
             shut = easy[verdict == 1]
             delta[shut] = -closed[which[m_idx[shut]], j_idx[shut]]  # E = 0
             todo = np.ones(len(m_idx), dtype=bool)
