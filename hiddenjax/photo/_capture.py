@@ -122,28 +122,60 @@ def capture_scene(base: trimesh.Trimesh, placement: Placement, albedo: float = 1
 def silhouette(mesh: trimesh.Trimesh, camera: Camera, supersample: int = 4) -> np.ndarray:
     """`(H, W)` float in `[0, 1]`: the fraction of each pixel the object's projected triangles cover
     (filled at `supersample` times the resolution over the object's bounding box, then box-averaged)."""
-    pix, depth = camera.project(np.asarray(mesh.vertices, dtype=np.float32))
-    pix, depth = np.asarray(pix, dtype=np.float64), np.asarray(depth)
-    if np.any(depth <= 0):
-        raise ValueError("the object is outside the photo (partly behind the camera) at the stated place; "
-                         "check --at (metres from the board centre) and the board's pose")
-    H, W, k = camera.height, camera.width, int(supersample)
-    out = np.zeros((H, W))
-    (r0, c0), (r1, c1) = np.floor(pix.min(axis=0)).astype(int) - 1, np.ceil(pix.max(axis=0)).astype(int) + 1
-    r0, c0, r1, c1 = max(r0, 0), max(c0, 0), min(r1, H), min(c1, W)
-    if r1 <= r0 or c1 <= c0:
-        return out  # wholly outside the image
-    # OpenCV (x, y) at k x within the box, pixel centres at integers, 4 fractional bits
-    xy = np.round(((pix[:, ::-1] - [c0, r0]) * k - 0.5) * 16).astype(np.int32)
-    fine = np.zeros(((r1 - r0) * k, (c1 - c0) * k), np.uint8)
-    faces = np.asarray(mesh.faces)
-    if mesh.is_watertight:  # a closed surface's outline is that of its faces towards the camera
-        centroid = np.asarray(mesh.triangles_center)
-        faces = faces[np.einsum("fk,fk->f", np.asarray(mesh.face_normals), centroid - np.asarray(camera.origin)) < 0]
-    for triangle in xy[faces]:  # one by one: fillPoly would cancel overlapping triangles
-        cv2.fillConvexPoly(fine, triangle, 1, lineType=cv2.LINE_8, shift=4)
-    out[r0:r1, c0:c1] = fine.reshape(r1 - r0, k, c1 - c0, k).mean(axis=(1, 3))
-    return out
+    return _Outline(mesh, camera).fill(np.asarray(mesh.vertices, dtype=np.float64), supersample)[0]
+
+
+class _Outline:
+    """`silhouette` of one mesh at many placements: its faces, and whether it is closed, found once."""
+
+    def __init__(self, mesh: trimesh.Trimesh, camera: Camera):
+        self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        self.faces = np.asarray(mesh.faces)
+        self.closed = bool(mesh.is_watertight)
+        self.camera = camera
+        self.rotation = np.asarray(camera.rotation, dtype=np.float64)
+        self.translation = np.asarray(camera.translation, dtype=np.float64).reshape(3)
+        self.intrinsics = np.asarray(camera.intrinsics, dtype=np.float64)
+
+    def at(self, placement: Placement, supersample: int = 4):
+        """`(coverage (H, W), box)` of the mesh turned and moved as `place` does; `box = (r0, r1, c0,
+        c1)` bounds the pixels it can cover (empty when outside the image)."""
+        a = np.radians(placement.yaw)
+        turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        return self.fill(self.vertices @ turn.T + [placement.x, 0.0, placement.z], supersample)
+
+    def fill(self, vertices, supersample: int):
+        p = vertices @ self.rotation.T + self.translation
+        fx, fy, cx, cy = self.intrinsics
+        depth = p[:, 2]
+        if np.any(depth <= 0):
+            raise ValueError("the object is outside the photo (partly behind the camera) at the stated place; "
+                             "check --at (metres from the board centre) and the board's pose")
+        pix = np.stack([fy * p[:, 1] / depth + cy, fx * p[:, 0] / depth + cx], axis=-1)
+        H, W, k = self.camera.height, self.camera.width, int(supersample)
+        out = np.zeros((H, W))
+        (r0, c0), (r1, c1) = np.floor(pix.min(axis=0)).astype(int) - 1, np.ceil(pix.max(axis=0)).astype(int) + 1
+        r0, c0, r1, c1 = max(r0, 0), max(c0, 0), min(r1, H), min(c1, W)
+        if r1 <= r0 or c1 <= c0:
+            return out, (0, 0, 0, 0)  # wholly outside the image
+        # OpenCV (x, y) at k x within the box, pixel centres at integers, 4 fractional bits
+        xy = np.round(((pix[:, ::-1] - [c0, r0]) * k - 0.5) * 16).astype(np.int32)
+        fine = np.zeros(((r1 - r0) * k, (c1 - c0) * k), np.uint8)
+        faces = self.faces
+        if self.closed:  # a closed surface's outline is that of its faces towards the camera
+            t = vertices[faces]
+            normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+            faces = faces[np.einsum("fk,fk->f", normal, t.mean(axis=1) - np.asarray(self.camera.origin)) < 0]
+        for triangle in xy[faces]:  # one by one: fillPoly would cancel overlapping triangles
+            cv2.fillConvexPoly(fine, triangle, 1, lineType=cv2.LINE_8, shift=4)
+        out[r0:r1, c0:c1] = fine.reshape(r1 - r0, k, c1 - c0, k).mean(axis=(1, 3))
+        return out, (r0, r1, c0, c1)
+
+
+def _window(box, pad: int, shape):
+    """The slices of `box = (r0, r1, c0, c1)` widened by `pad` pixels, within an image of `shape`."""
+    r0, r1, c0, c1 = box
+    return slice(max(r0 - pad, 0), min(r1 + pad, shape[0])), slice(max(c0 - pad, 0), min(c1 + pad, shape[1]))
 
 
 def plain_table(board: Board, camera: Camera) -> np.ndarray:
@@ -213,8 +245,10 @@ def refine_placement(base: trimesh.Trimesh, camera: Camera, placement: Placement
         return Placement(float(placement.x + v[0] * extent), float(placement.z + v[1] * extent),
                          float(placement.yaw + (v[2] * 45.0 if refine_yaw else 0.0)))
 
+    outline = _Outline(base, camera)
+
     def iou(p):
-        s = (silhouette(place(base, p), camera) > 0.5) & (care > 0.5)
+        s = (outline.at(p)[0] > 0.5) & (care > 0.5)
         t = (target > 0.5) & (care > 0.5)
         return float((s & t).sum() / max((s | t).sum(), 1))
 
@@ -223,23 +257,30 @@ def refine_placement(base: trimesh.Trimesh, camera: Camera, placement: Placement
         return minimize(loss, v, method="Nelder-Mead",
                         options=dict(initial_simplex=simplex, xatol=1e-3, fatol=1e-7, maxiter=400)).x
 
+    # Each objective is evaluated in a window around the outline's box, widened by its filter's reach:
+    # outside it the filtered outline is 0, and inside it equals the whole image's filtering (the
+    # window's reflected border sees only zeros, or is the image's own border).
     v = np.zeros(n)
     for k, blur in enumerate(blurs):
-        g = lambda a, blur=blur: cv2.GaussianBlur(a, (0, 0), blur) * care
-        gt = g(target * care)
+        gt = cv2.GaussianBlur(target * care, (0, 0), blur) * care
+        total, pad = float(gt.sum()), int(round(4 * blur)) + 2  # OpenCV's kernel reaches round(4 sigma)
 
-        def overlap(v, g=g, gt=gt):
-            s = g(silhouette(place(base, unpack(v)), camera))
-            inter = float(np.sum(s * gt))
-            return -inter / max(float(np.sum(s + gt)) - inter, 1e-9)
+        def overlap(v, blur=blur, gt=gt, total=total, pad=pad):
+            fill, box = outline.at(unpack(v))
+            win = _window(box, pad, fill.shape)
+            s = cv2.GaussianBlur(fill[win], (0, 0), blur) * care[win]
+            inter = float(np.sum(s * gt[win]))
+            return -inter / max(float(s.sum()) + total - inter, 1e-9)
 
         v = search(overlap, v, 0.1 / 3**k)
     if radiance is not None:
         edges = cv2.GaussianBlur(_edge_strength(radiance) * care, (0, 0), edge_blur)
 
         def on_edges(v):
-            strength = _edge_strength(silhouette(place(base, unpack(v)), camera, edge_supersample), log=False)
-            return -float(np.sum(strength * edges) / max(float(strength.sum()), 1e-9))
+            fill, box = outline.at(unpack(v), edge_supersample)
+            win = _window(box, 2, fill.shape)  # Sobel's 3 x 3 reach
+            strength = _edge_strength(fill[win], log=False)
+            return -float(np.sum(strength * edges[win]) / max(float(strength.sum()), 1e-9))
 
         v = search(on_edges, v, 0.02)
     best = unpack(v)
