@@ -320,6 +320,7 @@ def _transport(t: _Table) -> dict:
         seed=t.integer("seed", 0),
         bounces=t.integer("bounces", 0),
         keep_occluder=t.boolean("keep_occluder", False),
+        adaptive=t.boolean("adaptive", True),
     )
     t.done()
     return options
