@@ -61,11 +61,12 @@ def transport_matrix(
     - `bounces`: 0 is direct light; `k >= 1` adds `k` diffuse interreflections along
       `bounce_samples` cosine-weighted paths per footprint sample.
     - `adaptive`: trace each (pixel, env pixel) pair with 4 coarse rays first (one per
-      footprint sample, each towards its own quarter of the env pixel) and with the full
-      `pixel_samples x samples` only where they disagree (a shadow edge crosses the pair); a pair
-      they agree on is unoccluded (exact) or wholly occluded (0). Its bias, from partly occluded
-      pairs that all four rays miss, is measured in docs/benchmarks.md. `False`: every pair
-      near an occluder gets the full samples.
+      footprint sample, each towards its own quarter of the env pixel), 16 more on the
+      occluder's outline, and the full `pixel_samples x samples` only where they disagree (a
+      shadow edge crosses the pair); a pair they agree on is unoccluded (exact) or wholly
+      occluded (0). Its bias, from partly occluded pairs that every coarse ray misses, is
+      measured in docs/experiments/transport-build.md. `False`: every pair near an occluder gets
+      the full samples (smooth central differences over a moving scene need this).
     - `threads`: chunks in flight at once (default: the number of cores). Numpy releases the GIL,
       so Embree queries of one chunk overlap the arithmetic of another; results do not depend
       on it.

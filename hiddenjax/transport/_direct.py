@@ -22,7 +22,7 @@ when the whole pair is unoccluded); if every one is occluded, and every footprin
 pixel is in the cone, `E_j = 0`; otherwise the pair gets the `S` samples above. Glossy pairs
 always get them. The estimate is unbiased on the pairs that are refined; a pair partly occluded
 that all coarse rays call unoccluded (or occluded) keeps a bias of at most its occluded
-(unoccluded) part, measured in docs/benchmarks.md.
+(unoccluded) part, measured in docs/experiments/transport-build.md.
 
 Glossy surfaces (`Surface(roughness=...)`, `scene._gloss`) seen from a view direction `v`: the
 diffuse base weights each direction by `t(n.w) n.w` instead of `n.w` (its unoccluded part by a
@@ -57,8 +57,9 @@ class DirectLighting:
         self.centres = grid.directions().reshape(-1, 3)
         self.moments = grid.direction_moments().reshape(-1, 3)
         self.omega = grid.solid_angles().reshape(-1)
-        self.sin_beta = np.sin(grid.angular_radius().reshape(-1)) + 1e-9  # the horizon band's half-width
-        beta = grid.angular_radius().reshape(-1) + 1e-6
+        radius = grid.angular_radius().reshape(-1)
+        self.sin_beta = np.sin(radius) + 1e-9  # the horizon band's half-width
+        beta = radius + 1e-6
         self.beta_rad = beta
         self.cos_beta32 = np.cos(beta).astype(np.float32)[None, :]
         self.sin_beta32 = np.sin(beta).astype(np.float32)[None, :]
@@ -246,13 +247,13 @@ class DirectLighting:
         delta = np.zeros(len(m_idx))
         lobe_delta = np.zeros(len(m_idx)) if np.any(glossy) else None
         rays = 0
-        todo = slice(None)  # the pairs estimated with `samples` directions per point
-        if self.adaptive and max(1, -(-4 // group)) < S:  # fewer coarse rays per point than samples
+        refine = np.ones(len(m_idx), dtype=bool)  # the pairs estimated with `samples` directions per point
+        if self.adaptive and _rays_per_point(2, group) < S:
             easy = np.nonzero(~glossy[m_idx])[0]
             m, j = m_idx[easy], j_idx[easy]
             verdict, outline, rays = self._coarse(x, n, m, j, cones, group, 2)
             check = np.nonzero((verdict != -1) & outline)[0]  # on the outline: 16 rays more
-            if -(-16 // group) < S:
+            if _rays_per_point(4, group) < S:
                 again, _, more = self._coarse(x, n, m[check], j[check], cones, group, 4)
                 verdict[check] = np.where(again == verdict[check], again, -1)
                 rays += more
@@ -260,10 +261,8 @@ class DirectLighting:
                 verdict[check] = -1
             shut = easy[verdict == 1]
             delta[shut] = -closed[which[m_idx[shut]], j_idx[shut]]  # E = 0
-            todo = np.ones(len(m_idx), dtype=bool)
-            todo[easy[verdict != -1]] = False
-            todo = np.nonzero(todo)[0]
-        pairs = np.arange(len(m_idx))[todo]
+            refine[easy[verdict != -1]] = False
+        pairs = np.nonzero(refine)[0]
         per_block = max(1, _BLOCK // S)
         for start in range(0, len(pairs), per_block):
             at = pairs[start : start + per_block]
@@ -318,7 +317,7 @@ class DirectLighting:
         if len(m) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), 0
         N = self.grid.size
-        per_point = max(1, -(-k * k // group))
+        per_point = _rays_per_point(k, group)
         strata = _diagonal_order(k)[((m % group)[:, None] * per_point + np.arange(per_point)) % (k * k)]
         w = self._cell_points(k)[j[:, None], strata]  # (K, per_point, 3)
         occluded, rays = self._trace(x, m, w, cones, np.einsum("kc,ksc->ks", n[m], w) > 0)
@@ -357,6 +356,11 @@ class SplitRows(NamedTuple):
     delta: np.ndarray  # (nnz,) float64
     rays: int
     lobe_delta: np.ndarray | None = None  # (nnz,) the glossy lobe's occluded part (with a view)
+
+
+def _rays_per_point(k: int, group: int) -> int:
+    """Coarse rays each of a pixel's `group` footprint points traces for `k^2` per (pixel, env pixel) pair."""
+    return max(1, -(-k * k // group))
 
 
 def _diagonal_order(k: int) -> np.ndarray:
