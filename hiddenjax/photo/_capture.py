@@ -102,9 +102,15 @@ def cluster_vertices(mesh: trimesh.Trimesh, cell: float) -> trimesh.Trimesh:
 def place(base: trimesh.Trimesh, placement: Placement) -> trimesh.Trimesh:
     """`base` (from `object_mesh`) turned by the yaw and moved to `(x, 0, z)`."""
     m = base.copy()
-    m.apply_transform(trimesh.transformations.rotation_matrix(np.radians(placement.yaw), [0, 1, 0]))
-    m.apply_translation([placement.x, 0.0, placement.z])
+    m.vertices = _placed(np.asarray(base.vertices, dtype=np.float64), placement)
     return m
+
+
+def _placed(vertices: np.ndarray, placement: Placement) -> np.ndarray:
+    """`vertices (n, 3)` turned by the yaw about +y (right-handed) and moved to `(x, 0, z)`."""
+    a = np.radians(placement.yaw)
+    turn = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    return vertices @ turn.T + [placement.x, 0.0, placement.z]
 
 
 def capture_scene(base: trimesh.Trimesh, placement: Placement, albedo: float = 1.0,
@@ -133,6 +139,7 @@ class _Outline:
         self.faces = np.asarray(mesh.faces)
         self.closed = bool(mesh.is_watertight)
         self.camera = camera
+        self.origin = np.asarray(camera.origin, dtype=np.float64)
         self.rotation = np.asarray(camera.rotation, dtype=np.float64)
         self.translation = np.asarray(camera.translation, dtype=np.float64).reshape(3)
         self.intrinsics = np.asarray(camera.intrinsics, dtype=np.float64)
@@ -140,9 +147,7 @@ class _Outline:
     def at(self, placement: Placement, supersample: int = 4):
         """`(coverage (H, W), box)` of the mesh turned and moved as `place` does; `box = (r0, r1, c0,
         c1)` bounds the pixels it can cover (empty when outside the image)."""
-        a = np.radians(placement.yaw)
-        turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
-        return self.fill(self.vertices @ turn.T + [placement.x, 0.0, placement.z], supersample)
+        return self.fill(_placed(self.vertices, placement), supersample)
 
     def fill(self, vertices, supersample: int):
         p = vertices @ self.rotation.T + self.translation
@@ -165,7 +170,7 @@ class _Outline:
         if self.closed:  # a closed surface's outline is that of its faces towards the camera
             t = vertices[faces]
             normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-            faces = faces[np.einsum("fk,fk->f", normal, t.mean(axis=1) - np.asarray(self.camera.origin)) < 0]
+            faces = faces[np.einsum("fk,fk->f", normal, t.mean(axis=1) - self.origin) < 0]
         for triangle in xy[faces]:  # one by one: fillPoly would cancel overlapping triangles
             cv2.fillConvexPoly(fine, triangle, 1, lineType=cv2.LINE_8, shift=4)
         out[r0:r1, c0:c1] = fine.reshape(r1 - r0, k, c1 - c0, k).mean(axis=(1, 3))
