@@ -1,13 +1,23 @@
 """Corner scenes: the shipped networks on fresh scenes; differential rendering vs. render-twice-and-subtract,
 dataset, training and refinement speed.
 
-    python benchmarks/bench_corners.py [--quick] [--out DIR] [--fresh N] [--shipped-only]
+    python benchmarks/bench_corners.py [--quick] [--out DIR] [--fresh N] [--seed S] [--shipped-only]
+        [--refine] [--settings fixed-lamp random-lamp] [--kinds L T table]
 
 Shipped networks (`hj.corners.pretrained`, issue 57): each class and setting scored on `--fresh`
 scenes (default 1000) drawn from a seed range the training never used (`generate_dataset(seed=7)`:
 scene seeds from 7 000 021 on; the networks were trained on seed 0, scenes 0 to 47 999), as in the
 thesis' Table 3.1 (d, theta, rho: mean and spread), beside the thesis' numbers; and `track`'s
-throughput on 512 frames once compiled.
+throughput on 512 frames once compiled. `--seed S` draws the fresh scenes from seed range S instead.
+
+With `--refine`, every fresh scene's estimate is also refined against the renderer
+(`refine_corner`, thesis 3.5.2). The renderer is the scene as a corner file would describe it
+together with its surfaces: the walls, clutter, textures, camera and (lamp fixed) the lamp are the
+scene's; the hidden object is `TYPICAL_OBJECT` (its radius and height fitted, its brightness the
+loss' scale), and with the lamp drawn per scene the lamp starts at the middle of `LAMP_BOX` and is
+fitted in it. The rows of `shipped.json` gain `refined_errors` (the same table as `errors`),
+`refined_worse_share` (scenes made worse by more than 1 cm), `accepted_share` and the seconds per
+refined frame; `refined.png` plots each scene's network error against its refined error.
 
 Differential rendering (issue 6, thesis 3.2.1 reports ~15x): the exact one-bounce difference image
 by sampling the object and its shadow (`DifferentialRenderer.render(negative=True)`) against the
@@ -22,6 +32,7 @@ with pathwise gradients.
 """
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -52,11 +63,19 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--fresh", type=int, default=None, help="fresh scenes per class and setting (default 1000)")
     parser.add_argument("--shipped-only", action="store_true", help="only the shipped networks' evaluation")
+    parser.add_argument("--seed", type=int, default=FRESH_SEED, help=f"seed range of the fresh scenes (default "
+                        f"{FRESH_SEED}; the networks were trained on 0)")
+    parser.add_argument("--refine", action="store_true", help="also refine every estimate against the renderer")
+    parser.add_argument("--settings", nargs="+", default=list(hc.SETTINGS), choices=hc.SETTINGS)
+    parser.add_argument("--kinds", nargs="+", default=list(hc.SCENE_CLASSES), choices=hc.SCENE_CLASSES)
     args = parser.parse_args(argv)
+    if args.seed == 0:
+        parser.error("--seed 0 is the networks' training range: give another")
     hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
     quick = args.quick
-    shipped = shipped_networks(args.fresh or (24 if quick else 1000))
+    shipped = shipped_networks(args.fresh or (24 if quick else 1000), seed=args.seed, refine=args.refine,
+                               settings=args.settings, kinds=args.kinds, out=args.out)
     (args.out / "shipped.json").write_text(json.dumps(shipped, indent=2))
     if args.shipped_only:
         return shipped
@@ -155,20 +174,23 @@ THESIS = {"L": ((3.33, 2.16), (-0.05, 0.08), (0.40, 3.13)), "T": ((2.07, 1.48), 
 TARGET_RANDOM_LAMP_CM = 4.0  # issue 57: every class in the randomized-lamp setting
 
 
-def shipped_networks(count: int) -> dict:
+def shipped_networks(count: int, *, seed: int = 7, refine: bool = False, settings=hc.SETTINGS,
+                     kinds=hc.SCENE_CLASSES, out=None) -> dict:
     """Each shipped network on `count` fresh scenes of its class and setting; `track`'s throughput."""
     table = Table()
     table.append(("class", "setting", "d (cm)", "theta (rad)", "rho (cm)", "thesis d / theta / rho", "target d",
                   "held out in training"))
-    out = dict(count=count, seed=FRESH_SEED, rows=[])
-    for setting in hc.SETTINGS:
-        for kind in hc.SCENE_CLASSES:
+    result = dict(count=count, seed=seed, rows=[])
+    scatter = []
+    for setting in settings:
+        for kind in kinds:
             info = hc.pretrained_info(kind, setting)
             model = hc.pretrained(kind, setting)
-            data = hc.generate_dataset(kind, count, seed=FRESH_SEED, size=info["architecture"]["size"],
+            data = hc.generate_dataset(kind, count, seed=seed, size=info["architecture"]["size"],
                                        samples=info["dataset"]["samples"], lamp=hc.setting_lamp(setting), workers=2,
                                        progress=False)
-            e = hc.error_table(hc.localize(model, data.images).position, data.positions)
+            loc = hc.localize(model, data.images)
+            e = hc.error_table(loc.position, data.positions)
             (td, ts), (tt, tts), (tr, trs) = THESIS[kind]
             target = td if setting == "fixed-lamp" else TARGET_RANDOM_LAMP_CM
             met = "met" if e["d"]["mean"] <= target else "missed"
@@ -177,16 +199,83 @@ def shipped_networks(count: int) -> dict:
                           f"{e['rho']['mean']:.2f} ± {e['rho']['std']:.2f}",
                           f"{td} ± {ts} / {tt} ± {tts} / {tr} ± {trs}", f"<= {target} ({met})",
                           f"{info['validation']['d']['mean']:.2f}"))
-            out["rows"].append(dict(kind=kind, setting=setting, errors=e, target_cm=target, met=met == "met",
-                                    held_out_d_cm=info["validation"]["d"]["mean"]))
+            row = dict(kind=kind, setting=setting, errors=e, target_cm=target, met=met == "met",
+                       held_out_d_cm=info["validation"]["d"]["mean"])
+            if refine:
+                row.update(refined_rows(kind, setting, data, loc, seed))
+                r = row["refined_errors"]
+                table.append((kind, f"{setting}, refined", f"**{r['d']['mean']:.2f}** ± {r['d']['std']:.2f} "
+                              f"(median {r['median_d']:.2f})", f"{r['theta']['mean']:.3f} ± {r['theta']['std']:.3f}",
+                              f"{r['rho']['mean']:.2f} ± {r['rho']['std']:.2f}",
+                              f"worse by > 1 cm: {100 * row['refined_worse_share']:.1f}%",
+                              f"accepted {100 * row['accepted_share']:.0f}%",
+                              f"{row['refine_seconds']['mean']:.1f} s/frame (max {row['refine_seconds']['max']:.1f})"))
+                scatter.append((f"{kind}, {setting}", row.pop("_network_d"), row.pop("_refined_d")))
+            result["rows"].append(row)
     # Throughput of track() once compiled: 512 differential frames of the last class.
     frames = np.resize(data.images, (512,) + data.images.shape[1:])
     hc.track(model, frames)
     _, t = _timed(lambda: hc.track(model, frames), 3)
-    out["track_frames_per_second"] = 512 / t
+    result["track_frames_per_second"] = 512 / t
     table.append(("track()", "", f"{512 / t:.0f} frames/s", "512 frames, compiled, 2 cores", "", "", ">= 30", ""))
     table.print_all()
-    return out
+    if scatter and out is not None:
+        _plot_refined(scatter, Path(out) / "refined.png", count)
+    return result
+
+
+def model_scene(scene, setting: str):
+    """The renderer's scene for refining on a fresh `scene`: its surfaces and camera, `TYPICAL_OBJECT`
+    hidden, and the setting's lamp (the middle of `LAMP_BOX` where the lamp is drawn per scene)."""
+    lamp = hc.setting_lamp(setting)
+    lamp = np.mean(hc.LAMP_BOX, 0) if lamp is None else np.asarray(lamp, np.float64)
+    return dataclasses.replace(scene, hidden=hc.TYPICAL_OBJECT, lamp=lamp)
+
+
+def refined_rows(kind: str, setting: str, data, loc, seed: int) -> dict:
+    """`refine_corner` on every scene of a fresh dataset: the refined error table and what it cost."""
+    size, lamp = data.images.shape[-1], hc.setting_lamp(setting)
+    refined, accepted, seconds = [], [], []
+    for i, image in enumerate(data.images):
+        scene = hc.random_corner_scene(kind, seed * 1_000_003 + i, width=size, height=size, lamp=lamp)
+        assert np.allclose(scene.hidden.position, data.positions[i], atol=1e-6)  # the dataset's scene
+        out = hc.refine_corner(hc.DifferentialRenderer(model_scene(scene, setting)), image, loc.position[i],
+                               loc.cov[i], heatmap=loc.heatmap[i], lamp_box=hc.LAMP_BOX if lamp is None else None,
+                               seed=i)
+        refined.append(out.position)
+        accepted.append(out.accepted)
+        seconds.append(out.seconds)
+        if (i + 1) % 25 == 0:
+            print(f"  {kind} {setting}: refined {i + 1}/{len(data.images)}", flush=True)
+    refined = np.asarray(refined)
+    network_d = hc.localization_errors(loc.position, data.positions)["d"]
+    refined_d = hc.localization_errors(refined, data.positions)["d"]
+    return dict(refined_errors=hc.error_table(refined, data.positions),
+                refined_worse_share=float(np.mean(refined_d - network_d > 0.01)),
+                refined_better_share=float(np.mean(refined_d < network_d - 1e-9)),
+                accepted_share=float(np.mean(accepted)),
+                refine_seconds=dict(mean=float(np.mean(seconds)), median=float(np.median(seconds)),
+                                    max=float(np.max(seconds))),
+                _network_d=network_d * 100, _refined_d=refined_d * 100)
+
+
+def _plot_refined(scatter, path, count: int):
+    fig, axes = plt.subplots(1, len(scatter), figsize=(3.2 * len(scatter), 3.4), squeeze=False)
+    for ax, (name, before, after) in zip(axes[0], scatter):
+        top = float(max(np.max(before), np.max(after), 1.0))
+        ax.plot([0, top], [0, top], "k-", lw=0.8, label="unchanged")
+        ax.plot([1, top], [0, top - 1], "r:", lw=0.8, label="1 cm worse / better")
+        ax.plot([0, top - 1], [1, top], "r:", lw=0.8)
+        ax.scatter(before, after, s=6, alpha=0.6)
+        ax.set_title(f"{name}\nmean {np.mean(before):.2f} -> {np.mean(after):.2f} cm", fontsize=9)
+        ax.set_xlabel("network d (cm)")
+        ax.set_aspect("equal")
+    axes[0][0].set_ylabel("refined d (cm)")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle(f"refine_corner on {count} fresh scenes per row", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 FRESH_SEED = 7

@@ -213,11 +213,19 @@ def test_corner_command_refines_with_a_measured_corner(walk, tmp_path):
             + "".join(f"{k} = {p[k]}\n" for k in hc.GEOMETRY_KEYS["L"]))
     (tmp_path / "corner.toml").write_text(toml)
     status, _, err = _run(["corner", str(d / "empty.exr"), str(d / "frames" / "f0.exr"), "-o", str(tmp_path / "r"),
-                           "--corner", str(tmp_path / "corner.toml"), "--linear", "--refine", "--refine-steps", "4",
-                           "--quiet"])
+                           "--corner", str(tmp_path / "corner.toml"), "--linear", "--refine", "--quiet"])
     assert status == 0, err
-    refined = json.loads((tmp_path / "r" / "track.json").read_text())["refined"]
-    assert len(refined) == 1 and np.isfinite([refined[0]["x"], refined[0]["z"], refined[0]["loss"]]).all()
+    result = json.loads((tmp_path / "r" / "track.json").read_text())
+    (refined,), (estimate,) = result["refined"], result["estimates"]
+    assert np.isfinite([refined["x"], refined["z"], refined["loss"], refined["improvement"], refined["noise"]]).all()
+    assert refined["network"] == pytest.approx([estimate["x"], estimate["z"]])
+    truth = np.asarray(path[0])
+    # kept unless the check found it better: never further than the search's own place
+    if refined["accepted"]:
+        assert refined["improvement"] > refined["noise"]
+    else:
+        assert [refined["x"], refined["z"]] == pytest.approx(refined["network"])
+    assert np.all(np.isfinite(truth))
 
 
 @pytest.mark.parametrize("case,words", [
@@ -225,6 +233,8 @@ def test_corner_command_refines_with_a_measured_corner(walk, tmp_path):
     ("no class", "which corner? give --class"),
     ("blind camera", "does not see the floor at the corner's foot"),
     ("refine without geometry", "--refine renders the corner"),
+    ("walls out of view", "sees its walls and floor in only"),
+    ("refine every", "--refine-every must be >= 1, got 0"),
     ("one frame", "1 frame(s): a difference needs 2 or more"),
     ("same frames", "do not differ from the background"),
     ("bad class", "class must be one of"),
@@ -246,6 +256,13 @@ def test_corner_command_bad_input_is_one_line_and_no_output(walk, tmp_path, case
         options = ["--corner", str(tmp_path / "c.toml")]
     elif case == "refine without geometry":
         options += ["--refine"]
+    elif case == "walls out of view":  # a corner of a few millimetres: the camera sees its foot, little else
+        (tmp_path / "c.toml").write_text(
+            '[corner]\nclass = "L"\n[corner.camera]\norigin = [-0.1, 0.12, -0.5]\ntarget = [-0.05, 0.0, 0.05]\n'
+            '[corner.geometry]\n' + "".join(f"{k} = 0.004\n" for k in hc.GEOMETRY_KEYS["L"]))
+        options = ["--corner", str(tmp_path / "c.toml"), "--refine"]
+    elif case == "refine every":
+        options += ["--refine-every", "0"]
     elif case == "one frame":
         frames = frames[:1]
     elif case == "same frames":

@@ -376,3 +376,77 @@ def test_a_uniformly_glowing_object_ignores_the_lamp_and_both_renderers_agree(tm
     np.testing.assert_array_equal(data.images[1], image)
     with pytest.raises(ValueError, match="was made with"):  # a cache remembers how its objects shine
         hc.generate_dataset("L", 2, seed=1, size=16, samples=2, cache=tmp_path / "glow.npz", progress=False)
+
+
+@pytest.fixture(scope="module")
+def search_case():
+    """A 128x128 L scene photographed with its own object (radius 2.3 cm, height 8.8 cm) at 256
+    samples/px; the model renders `TYPICAL_OBJECT` (3 cm, 14 cm) and must fit its size."""
+    scene = hc.random_corner_scene("L", 5)
+    observed = hc.DifferentialRenderer(scene).render(samples=256, seed=99)
+    model = hc.DifferentialRenderer(dataclasses.replace(scene, hidden=hc.TYPICAL_OBJECT))
+    return scene, observed, model
+
+
+def test_refine_corner_finds_the_object_from_a_guess_5_cm_off(search_case):
+    scene, observed, model = search_case
+    truth = np.asarray(scene.hidden.position)
+    out = hc.refine_corner(model, observed, truth + np.array([0.04, -0.03]), 0.03**2 * np.eye(2), seed=0)
+    assert out.accepted and out.improvement > 3 * out.noise
+    assert np.linalg.norm(out.position - truth) < 0.02  # measured: 5 cm -> 1.0 cm
+    assert abs(out.height - scene.hidden.height) < 0.03  # fitted from 14 cm (measured: 9 cm, true 8.8)
+    np.testing.assert_array_equal(out.network, truth + np.array([0.04, -0.03]))
+    assert out.renders > 0 and out.seconds > 0
+
+
+def test_refine_corner_keeps_an_estimate_the_data_cannot_improve(search_case):
+    """Started at the truth, a move must beat the measured Monte Carlo noise of the check."""
+    scene, observed, model = search_case
+    truth = np.asarray(scene.hidden.position)
+    out = hc.refine_corner(model, observed, truth, 0.03**2 * np.eye(2), seed=1)
+    assert np.linalg.norm(out.position - truth) < 0.005, (out.accepted, out.improvement, out.noise)
+
+
+def test_paired_loss_takes_the_render_noise_out_of_the_scale_free_loss(search_case):
+    """Two half renders: `E[r1.r2] = |E r|^2`, where one render's `|r|^2` is inflated by its noise."""
+    from hiddenjax.corners._search import _Loss
+
+    scene, observed, _ = search_case
+    r = hc.DifferentialRenderer(scene)
+    theta = np.r_[scene.hidden.position, scene.hidden.radius, scene.hidden.height]
+    loss = _Loss(r, observed, 4, fit_lamp=False)
+    paired = np.array([loss(theta, 4, s) for s in range(16)])
+    plain = np.array([hc.scale_free_loss(r.render(samples=4, seed=s), observed, 4) for s in range(16)])
+    converged = hc.scale_free_loss(r.render(samples=256, seed=1), observed, 4)
+    se = lambda v: v.std(ddof=1) / np.sqrt(len(v))
+    # measured: paired within 1.5 of its standard errors of the 256-sample loss (0.0011), plain 0.0098
+    assert abs(paired.mean() - converged) < 3 * se(paired)
+    assert plain.mean() - converged > 5 * se(plain) + abs(paired.mean() - converged)
+    assert loss(np.r_[-1.0, 0.1, 0.03, 0.1], 4, 0) == 1.0  # outside the hidden corridor
+
+
+def test_render_with_another_object_and_lamp_is_the_scene_rendered_with_them():
+    scene = hc.random_corner_scene("T", 3, width=32, height=32)
+    other = hc.HiddenObject((0.2, 0.1), radius=0.035, height=0.1, albedo=0.5)
+    lamp = np.array([0.1, 0.7, 0.2])
+    moved = hc.DifferentialRenderer(dataclasses.replace(scene, hidden=other, lamp=lamp))
+    for negative in (False, True):
+        np.testing.assert_allclose(
+            hc.DifferentialRenderer(scene).render(samples=8, seed=4, hidden=other, lamp=lamp, negative=negative),
+            moved.render(samples=8, seed=4, negative=negative), rtol=1e-6, atol=1e-9)
+    with pytest.raises(ValueError, match="lamp must be a finite"):
+        moved.render(lamp=[0.1, -0.2, 0.1])
+
+
+def test_refine_corner_rejects_bad_input(search_case):
+    scene, observed, model = search_case
+    p, c = np.asarray(scene.hidden.position), 0.03**2 * np.eye(2)
+    for kwargs, message in ((dict(observed=observed[:64]), "does not match the renderer's camera"),
+                            (dict(observed=np.where(observed > 0, np.nan, observed)), "NaN or infinite"),
+                            (dict(mean=np.array([np.nan, 0.1])), "finite"),
+                            (dict(cov=np.eye(3)), "2x2"),
+                            (dict(checks=1), "checks >= 2"),
+                            (dict(lamp_box=((0, 0, 0), (1, -1, 1))), "low <= high")):
+        args = dict(observed=observed, mean=p, cov=c) | kwargs
+        with pytest.raises(ValueError, match=message):
+            hc.refine_corner(model, args.pop("observed"), args.pop("mean"), args.pop("cov"), **args)

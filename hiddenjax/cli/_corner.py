@@ -5,7 +5,6 @@ import sys
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 
 from .. import corners as _corners
@@ -37,9 +36,11 @@ def add_parsers(sub) -> None:
     p.add_argument("--crop", type=int, nargs=3, metavar=("X0", "Y0", "SIDE"),
                    help="the square of the frames the network sees (default: the central square)")
     p.add_argument("--mirror", action="store_true", help="the hidden corridor opens to the right of the frames")
-    p.add_argument("--refine", action="store_true", help="refine each estimate against the rendered corner (thesis "
-                                                         "3.5; needs the corner file's camera and geometry)")
-    p.add_argument("--refine-steps", type=int, default=30, help="variational steps per refinement (default 30)")
+    p.add_argument("--refine", action="store_true", help="refine the estimates against the rendered corner (thesis "
+                                                         "3.5.2; needs the corner file's camera and geometry)")
+    p.add_argument("--refine-every", type=int, default=1, metavar="K",
+                   help="refine every K-th estimate, each search also started from the previous refined place "
+                        "(default 1: every estimate)")
     p.add_argument("--every", type=int, default=1, help="keep every N-th frame (default 1)")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
     p.add_argument("--linear", action="store_true", help="the frames' values are linear (default: decode sRGB)")
@@ -65,11 +66,13 @@ def corner(args) -> dict:
         c = spec.camera
         camera = Camera.look_at(c["origin"], c["target"], c["up"], c["fov"], size, size)
         _corners.check_corner_camera(camera)
-    if args.refine and (camera is None or spec.geometry is None):
-        raise ValueError("--refine renders the corner: it needs [corner.camera] and [corner.geometry] in the corner "
-                         "file (docs/guide/around-the-corner.md)")
     if args.window < 1:
         raise ValueError(f"--window must be >= 1, got {args.window}")
+    if args.refine_every < 1:
+        raise ValueError(f"--refine-every must be >= 1, got {args.refine_every}")
+    renderer = lamp_box = None
+    if args.refine:  # built before the frames are read: a corner file that cannot be rendered fails early
+        renderer, lamp_box = _refinement_renderer(kind, setting, spec, camera)
     frames, indices, fps, shape = _corner_frames(args.inputs, size, crop, args.every, args.max_frames, args.linear,
                                                  args.quiet)
     if mirror:
@@ -102,20 +105,20 @@ def corner(args) -> dict:
                  for f, p, q, c in zip(frame_index, result.position, result.polar, result.cov)]
     refined = None
     if args.refine:
-        lamp = spec.lamp if spec.lamp is not None else (_corners.setting_lamp(setting) or
-                                                        _corners.FIXED_LAMP)
-        scene = _corners.corner_scene(kind, spec.geometry, camera, lamp)
-        renderer = _corners.DifferentialRenderer(scene)
         means, _ = _corners.window_means(differences, args.window)
-        refined = []
-        for k, (m, p, c) in enumerate(zip(means, result.position, result.cov)):
-            w, V = np.linalg.eigh(c)
-            cov = (V * np.clip(w, 0.02**2, 0.1**2)) @ V.T  # as in examples/around_the_corner.py
-            r = _corners.refine_location(renderer, m, p, cov, key=jax.random.key(k), steps=args.refine_steps)
-            refined.append(dict(frame=int(frame_index[k]), x=float(r.mean[0]), z=float(r.mean[1]),
-                                cov=np.asarray(r.cov).tolist(), loss=float(r.loss[-1])))
+        refined, previous = [], []
+        picked = range(0, len(means), args.refine_every)
+        for n, k in enumerate(picked):
+            r = _corners.refine_corner(renderer, means[k], result.position[k], result.cov[k],
+                                       heatmap=result.heatmap[k], lamp_box=lamp_box, extra_starts=previous, seed=k)
+            previous = [r.position]
+            refined.append(dict(frame=int(frame_index[k]), x=float(r.position[0]), z=float(r.position[1]),
+                                accepted=r.accepted, improvement=float(r.improvement), noise=float(r.noise),
+                                loss=float(r.loss), radius=float(r.radius), height=float(r.height),
+                                lamp=np.asarray(r.lamp).tolist(), network=np.asarray(r.network).tolist(),
+                                searched=np.asarray(r.searched).tolist(), seconds=float(r.seconds)))
             if not args.quiet:
-                print(f"  refined {k + 1}/{len(means)}", file=sys.stderr, flush=True)
+                print(f"  refined {n + 1}/{len(picked)}", file=sys.stderr, flush=True)
     results = dict(kind=kind, setting=setting, network=info["file"], sha256=info["sha256"], frames=len(frames),
                    frame_shape=list(shape), crop=list(_corners.square_crop(*shape, crop)), mirror=mirror,
                    background=str(background), window=args.window, estimates=estimates, refined=refined,
@@ -130,6 +133,27 @@ def corner(args) -> dict:
           f"z {last['z']:.3f} m (theta {last['theta']:.3f} rad, rho {last['rho']:.3f} m, 1-sigma "
           f"{100 * max(last['sigma']):.1f} cm) at {results['frames_per_second']:.0f} frames/s")
     return results
+
+
+def _refinement_renderer(kind, setting, spec, camera):
+    """The measured corner's `DifferentialRenderer` and the lamp's box (`None`: the lamp is known).
+
+    The lamp is the corner file's, else the fixed-lamp setting's; in the random-lamp setting
+    without one it is fitted in `LAMP_BOX`, the range the networks were trained on.
+    """
+    if camera is None or spec.geometry is None:
+        raise ValueError("--refine renders the corner: it needs [corner.camera] and [corner.geometry] in the corner "
+                         "file (docs/guide/around-the-corner.md)")
+    lamp = spec.lamp if spec.lamp is not None else _corners.setting_lamp(setting)
+    box = _corners.LAMP_BOX if lamp is None else None
+    lamp = np.mean(_corners.LAMP_BOX, 0) if lamp is None else lamp
+    renderer = _corners.DifferentialRenderer(_corners.corner_scene(kind, spec.geometry, camera, lamp))
+    seen = float(np.mean(renderer.valid))
+    if seen < 0.5:  # the training scenes' cameras: 70-100% (180 scenes)
+        raise ValueError(f"the corner file's camera sees its walls and floor in only {100 * seen:.0f}% of the frame "
+                         "(the networks' scenes: 70-100%): check [corner.camera] and [corner.geometry] (the camera's "
+                         "origin, target and fov, in metres and degrees in the corner's frame)")
+    return renderer, box
 
 
 def _corner_frames(inputs, size, crop, every, max_frames, linear, quiet):

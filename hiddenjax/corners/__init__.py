@@ -1,8 +1,13 @@
 """Hidden objects around corners (thesis ch. 3): randomized scenes, differential rendering, polar labels,
-the localization CNN and its training, Gaussian read-out, variational refinement and saliency."""
+the localization CNN and its training, Gaussian read-out, the
+refinement against the renderer (a search that keeps the network's estimate unless the data say
+otherwise, and the variational one) and saliency."""
 
 from ._scenes import EMISSIONS as EMISSIONS
 from ._scenes import RHO_MAX as RHO_MAX
+from ._scenes import LAMP_BOX as LAMP_BOX
+from ._scenes import OBJECT_HEIGHT as OBJECT_HEIGHT
+from ._scenes import OBJECT_RADIUS as OBJECT_RADIUS
 from ._scenes import SCENE_CLASSES as SCENE_CLASSES
 from ._scenes import CornerScene as CornerScene
 from ._scenes import HiddenObject as HiddenObject
@@ -56,3 +61,5 @@ from ._track import window_means as window_means
 from ._refine import refine_location as refine_location
 from ._refine import rendering_loss as rendering_loss
 from ._refine import scale_free_loss as scale_free_loss
+from ._search import CornerRefinement as CornerRefinement
+from ._search import refine_corner as refine_corner

@@ -17,12 +17,14 @@ without the object with the same random numbers. Both estimate the same image; t
 them against each other and `benchmarks/bench_corners.py` measures the speed-up at equal noise.
 """
 
+import dataclasses
+
 import numpy as np
 
 from ..scene import Scene, Surface
 from ..scene._sampling import cosine_directions
 from ..transport._embree import RayCaster, pixel_centre_hits
-from ._scenes import CornerScene
+from ._scenes import CornerScene, HiddenObject, _check_lamp
 
 
 def _unit(v):
@@ -75,8 +77,12 @@ class DifferentialRenderer:
         self.points = (hits.position + self.caster.offset * hits.normal)[self.valid]
         self.normals = hits.normal[self.valid]
         self.albedo = scene.albedo_at(hits.surface[self.valid], hits.position[self.valid])
-        lit = ~_blocked(self.caster, self.points, np.broadcast_to(scene.lamp, self.points.shape))
-        self.direct = lit * _lamp_radiance(self.albedo, self.points, self.normals, scene.lamp, scene.intensity)
+        self.direct = self._direct(scene.lamp)
+
+    def _direct(self, lamp) -> np.ndarray:
+        """The lamp's direct radiance at every visible point, shadowed by the background."""
+        lit = ~_blocked(self.caster, self.points, np.broadcast_to(lamp, self.points.shape))
+        return lit * _lamp_radiance(self.albedo, self.points, self.normals, lamp, self.scene.intensity)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -88,7 +94,7 @@ class DifferentialRenderer:
         return out.reshape(self.shape)
 
     def render(self, position=None, *, samples: int = 32, seed: int = 0, negative: bool = False,
-               pool: int = 4096) -> np.ndarray:
+               pool: int = 4096, hidden: HiddenObject | None = None, lamp=None) -> np.ndarray:
         """The differential image `(H, W)` float32 with the object at `position (x, z)` (default: the scene's).
 
         **Arguments:**
@@ -102,10 +108,19 @@ class DifferentialRenderer:
           With `scene.emission == 'uniform'` every object point glows alike (no lamp; `negative`
           then raises).
         - `pool`: candidate points drawn on the object (and in its shadow) per image.
+        - `hidden`, `lamp`: another hidden object (its size and albedo; moved to `position` when
+          given) or lamp position `(3,)` than the scene's, for fitting them (the background's
+          camera hits are reused).
         """
         if samples < 1:
             raise ValueError(f"samples must be >= 1, got {samples}")
         sc = self.scene
+        if hidden is not None:
+            sc = dataclasses.replace(sc, hidden=hidden)
+        direct = self.direct
+        if lamp is not None:
+            sc = dataclasses.replace(sc, lamp=_check_lamp(lamp))
+            direct = self._direct(sc.lamp) if negative else None
         if negative and sc.emission != "lamp":
             raise ValueError(f"negative=True needs the lamp-lit scene (emission='lamp'), not emission={sc.emission!r}: "
                              "the negative terms are the lamp light the object hides and shadows")
@@ -150,8 +165,8 @@ class DifferentialRenderer:
         if not negative:
             return self._to_image(self.albedo / np.pi * rows)
         obj = RayCaster(Scene([Surface(mesh, hidden.albedo, observe=False)]))  # the object alone
-        rows = self.albedo / np.pi * (rows + self._shadow_term(hidden, obj, samples, pool, rng))
-        rows = rows - self.direct * _blocked(obj, self.points, np.broadcast_to(sc.lamp, self.points.shape))
+        rows = self.albedo / np.pi * (rows + self._shadow_term(sc, hidden, obj, samples, pool, rng))
+        rows = rows - direct * _blocked(obj, self.points, np.broadcast_to(sc.lamp, self.points.shape))
         return self._to_image(rows)
 
     def _gather(self, y, ny, k, coef, value, pairs: int = 1 << 19) -> np.ndarray:
@@ -182,9 +197,8 @@ class DifferentialRenderer:
             rows += np.bincount(i, g * value(points[i], live / d[:, None], d, kk[i, j]), minlength=n)
         return rows
 
-    def _shadow_term(self, hidden, obj, samples, pool, rng):
+    def _shadow_term(self, sc, hidden, obj, samples, pool, rng):
         """(c): minus the lamp light that the object's shadow takes from the background points `s` sees."""
-        sc = self.scene
         centre = np.array([hidden.position[0], hidden.height / 2, hidden.position[1]])
         axis, dist = _unit(centre - sc.lamp)
         cos_a = np.sqrt(max(0.0, 1 - (np.hypot(hidden.radius, hidden.height / 2) / dist) ** 2))

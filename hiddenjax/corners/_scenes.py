@@ -26,6 +26,11 @@ SCENE_CLASSES = ("L", "T", "table")
 EMISSIONS = ("lamp", "uniform")
 # Where a hidden object may stand (polar, about the corner): the label grid covers this range.
 RHO_MAX = 0.5
+# The ranges the scenes draw from (metres): the hidden cylinder's radius and height, and the
+# active lamp's box over the hidden corridor (`(low (3,), high (3,))`, corner frame).
+OBJECT_RADIUS = (0.0225, 0.04)
+OBJECT_HEIGHT = (0.08, 0.2)
+LAMP_BOX = ((0.0, 0.4, 0.0), (0.4, 0.9, 0.3))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -214,14 +219,14 @@ def random_corner_scene(kind: str = "L", seed: int = 0, *, width: int = 128, hei
     target = [rng.uniform(-0.12, 0.0), 0.0, rng.uniform(0.0, 0.12)]
     camera = Camera.look_at(origin, target, [0, 1, 0], fov=float(rng.uniform(50, 70)), width=width, height=height)
     # The active lamp hangs over the hidden corridor so that the object is well lit (thesis 3.2.4).
-    lamp = np.array([rng.uniform(0.0, 0.4), rng.uniform(0.4, 0.9), rng.uniform(0.0, 0.3)])
+    lamp = np.array([rng.uniform(lo, hi) for lo, hi in zip(*LAMP_BOX)])
     if fixed_lamp is not None:
         lamp = fixed_lamp  # drawn first all the same, so the rest of the scene does not change
     p.update(camera_origin=origin, camera_target=target, fov=camera_fov(camera))
     scene = CornerScene(kind, p, tuple(meshes), albedo, texture, camera, lamp, 1.0, None, emission)
     for _ in range(max_tries):
-        hidden = HiddenObject((0.0, 0.0), radius=float(rng.uniform(0.0225, 0.04)),
-                              height=float(rng.uniform(0.08, 0.2)), albedo=float(rng.uniform(0.3, 0.95)))
+        hidden = HiddenObject((0.0, 0.0), radius=float(rng.uniform(*OBJECT_RADIUS)),
+                              height=float(rng.uniform(*OBJECT_HEIGHT)), albedo=float(rng.uniform(0.3, 0.95)))
         position = _hidden_position(rng, p, hidden.radius)
         scene = dataclasses.replace(scene, hidden=hidden.moved(position))
         if not object_visible(scene):
