@@ -77,6 +77,8 @@ def main(argv=None):
     parser.add_argument("--kinds", nargs="+", default=list(hc.SCENE_CLASSES), choices=hc.SCENE_CLASSES)
     parser.add_argument("--mismatch", type=int, default=0, metavar="N",
                         help="refine N fresh L and T scenes against a corner model that is off, one fault at a time")
+    parser.add_argument("--aim", type=int, default=0, help="refine_corner's aim: the camera's aim fitted as an image "
+                        "shift within +-AIM pixels (default 0)")
     args = parser.parse_args(argv)
     if args.seed == 0:
         parser.error("--seed 0 is the networks' training range: give another")
@@ -84,11 +86,11 @@ def main(argv=None):
     args.out.mkdir(parents=True, exist_ok=True)
     quick = args.quick
     if args.mismatch:
-        mismatch = model_mismatch(args.mismatch, args.seed)
+        mismatch = model_mismatch(args.mismatch, args.seed, args.aim)
         (args.out / "mismatch.json").write_text(json.dumps(mismatch, indent=2))
         return mismatch
     shipped = shipped_networks(args.fresh or (24 if quick else 1000), seed=args.seed, refine=args.refine,
-                               settings=args.settings, kinds=args.kinds, out=args.out)
+                               settings=args.settings, kinds=args.kinds, out=args.out, aim=args.aim)
     (args.out / "shipped.json").write_text(json.dumps(shipped, indent=2))
     if args.shipped_only:
         return shipped
@@ -188,12 +190,12 @@ TARGET_RANDOM_LAMP_CM = 4.0  # issue 57: every class in the randomized-lamp sett
 
 
 def shipped_networks(count: int, *, seed: int = 7, refine: bool = False, settings=hc.SETTINGS,
-                     kinds=hc.SCENE_CLASSES, out=None) -> dict:
+                     kinds=hc.SCENE_CLASSES, out=None, aim: int = 0) -> dict:
     """Each shipped network on `count` fresh scenes of its class and setting; `track`'s throughput."""
     table = Table()
     table.append(("class", "setting", "d (cm)", "theta (rad)", "rho (cm)", "thesis d / theta / rho", "target d",
                   "held out in training"))
-    result = dict(count=count, seed=seed, rows=[])
+    result = dict(count=count, seed=seed, aim=aim, rows=[])
     scatter = []
     for setting in settings:
         for kind in kinds:
@@ -215,7 +217,7 @@ def shipped_networks(count: int, *, seed: int = 7, refine: bool = False, setting
             row = dict(kind=kind, setting=setting, errors=e, target_cm=target, met=met == "met",
                        held_out_d_cm=info["validation"]["d"]["mean"])
             if refine:
-                row.update(refined_rows(kind, setting, data, loc, seed))
+                row.update(refined_rows(kind, setting, data, loc, seed, aim))
                 r = row["refined_errors"]
                 table.append((kind, f"{setting}, refined", f"**{r['d']['mean']:.2f}** ± {r['d']['std']:.2f} "
                               f"(median {r['median_d']:.2f})", f"{r['theta']['mean']:.3f} ± {r['theta']['std']:.3f}",
@@ -245,7 +247,7 @@ def model_scene(scene, setting: str):
     return dataclasses.replace(scene, hidden=hc.TYPICAL_OBJECT, lamp=lamp)
 
 
-def refined_rows(kind: str, setting: str, data, loc, seed: int) -> dict:
+def refined_rows(kind: str, setting: str, data, loc, seed: int, aim: int = 0) -> dict:
     """`refine_corner` on every scene of a fresh dataset: the refined error table and what it cost."""
     size, lamp = data.images.shape[-1], hc.setting_lamp(setting)
     refined, accepted, seconds = [], [], []
@@ -254,7 +256,7 @@ def refined_rows(kind: str, setting: str, data, loc, seed: int) -> dict:
         assert np.allclose(scene.hidden.position, data.positions[i], atol=1e-6)  # the dataset's scene
         out = hc.refine_corner(hc.DifferentialRenderer(model_scene(scene, setting)), image, loc.position[i],
                                loc.cov[i], heatmap=loc.heatmap[i], lamp_box=hc.LAMP_BOX if lamp is None else None,
-                               seed=i)
+                               aim=aim, seed=i)
         refined.append(out.position)
         accepted.append(out.accepted)
         seconds.append(out.seconds)
@@ -313,12 +315,12 @@ def _walls(kind: str, params: dict, scene) -> tuple:
 FAULTS = ("none", "walls 1", "walls 2", "camera 1 deg", "lamp 5 cm", "floor texture", "textures and clutter")
 
 
-def model_mismatch(count: int, seed: int) -> dict:
+def model_mismatch(count: int, seed: int, aim: int = 0) -> dict:
     """Network and refined d on `count` fresh L and T scenes (lamp fixed) for each fault in `FAULTS`."""
     table = Table()
     table.append(("class", "model of the corner", "network d (cm)", "refined d (cm)", "median", "worse by > 1 cm",
                   "accepted"))
-    out = dict(count=count, seed=seed, rows=[])
+    out = dict(count=count, seed=seed, aim=aim, rows=[])
     for kind in ("L", "T"):
         model = hc.pretrained(kind, "fixed-lamp")
         data = hc.generate_dataset(kind, count, seed=seed, size=128, samples=16, lamp=hc.FIXED_LAMP, workers=2,
@@ -332,7 +334,7 @@ def model_mismatch(count: int, seed: int) -> dict:
                 scene = hc.random_corner_scene(kind, seed * 1_000_003 + i, lamp=hc.FIXED_LAMP)
                 faulty = _faulty(scene, fault, rng)
                 r = hc.refine_corner(hc.DifferentialRenderer(faulty), image, loc.position[i], loc.cov[i],
-                                     heatmap=loc.heatmap[i], seed=i)
+                                     heatmap=loc.heatmap[i], aim=aim, seed=i)
                 refined.append((r.position, r.accepted))
             d = hc.localization_errors(np.array([p for p, _ in refined]), data.positions)["d"] * 100
             row = dict(kind=kind, fault=fault, network_mean_cm=float(network_d.mean()),

@@ -235,6 +235,7 @@ def test_corner_command_refines_with_a_measured_corner(walk, tmp_path):
     ("refine without geometry", "--refine renders the corner"),
     ("walls out of view", "sees its walls and floor in only"),
     ("refine every", "--refine-every must be >= 1, got 0"),
+    ("refine aim", "--refine-aim must be a number of pixels in [0, 32], got 99"),
     ("one frame", "1 frame(s): a difference needs 2 or more"),
     ("same frames", "do not differ from the background"),
     ("bad class", "class must be one of"),
@@ -263,6 +264,8 @@ def test_corner_command_bad_input_is_one_line_and_no_output(walk, tmp_path, case
         options = ["--corner", str(tmp_path / "c.toml"), "--refine"]
     elif case == "refine every":
         options += ["--refine-every", "0"]
+    elif case == "refine aim":
+        options += ["--refine-aim", "99"]
     elif case == "one frame":
         frames = frames[:1]
     elif case == "same frames":

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import hiddenjax as hj
 import hiddenjax.corners as hc
 import hiddenjax.solvers as hs
 
@@ -450,3 +451,34 @@ def test_refine_corner_rejects_bad_input(search_case):
         args = dict(observed=observed, mean=p, cov=c) | kwargs
         with pytest.raises(ValueError, match=message):
             hc.refine_corner(model, args.pop("observed"), args.pop("mean"), args.pop("cov"), **args)
+
+
+def test_shifted_blocks_are_the_block_means_of_the_shifted_image():
+    from hiddenjax.corners._refine import _blocks
+    from hiddenjax.corners._search import _shifted_blocks
+
+    image = np.random.default_rng(0).random((20, 26))  # a ragged edge: the last 2 columns are dropped
+    blocks = _shifted_blocks(image, 4, 2)
+    assert blocks.shape == (25, 5 * 6)
+    np.testing.assert_allclose(blocks[12], _blocks(image, 4).ravel(), rtol=1e-12)  # the middle shift is (0, 0)
+    moved = np.zeros_like(image)
+    moved[1:, :-2] = image[:-1, 2:]  # down 1 row, left 2 columns
+    np.testing.assert_allclose(blocks[(1 + 2) * 5 + (-2 + 2)], _blocks(moved, 4).ravel(), rtol=1e-12)
+
+
+def test_refine_corner_with_aim_absorbs_a_camera_turned_by_a_degree(search_case):
+    """The model's camera is turned 1 degree about the vertical (about 2 pixels of image shift)."""
+    scene, observed, model = search_case
+    truth = np.asarray(scene.hidden.position)
+    c = scene.camera
+    origin = np.asarray(c.origin)
+    a = np.radians(1.0)
+    turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    target = origin + turn @ (np.asarray(scene.params["camera_target"]) - origin)
+    camera = hj.Camera.look_at(origin, target, [0, 1, 0], scene.params["fov"], c.width, c.height)
+    turned = hc.DifferentialRenderer(dataclasses.replace(model.scene, camera=camera))
+    start = truth + np.array([0.04, -0.03])
+    out = hc.refine_corner(turned, observed, start, 0.03**2 * np.eye(2), aim=2, seed=0)
+    assert np.linalg.norm(out.position - truth) < 0.03, out  # measured: 1.9 cm (aim 0: 6.5 cm, from a 5 cm start)
+    with pytest.raises(ValueError, match="aim must be a whole number of pixels"):
+        hc.refine_corner(turned, observed, start, 0.03**2 * np.eye(2), aim=-1)

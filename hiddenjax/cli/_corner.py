@@ -41,6 +41,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--refine-every", type=int, default=1, metavar="K",
                    help="refine every K-th estimate, each search also started from the previous refined place "
                         "(default 1: every estimate)")
+    p.add_argument("--refine-aim", type=int, default=0, metavar="PX",
+                   help="--refine: fit the camera's aim as an image shift of up to PX pixels at the network's 128 "
+                        "(about 2 per degree; default 0: the corner file's camera is exact)")
     p.add_argument("--every", type=int, default=1, help="keep every N-th frame (default 1)")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
     p.add_argument("--linear", action="store_true", help="the frames' values are linear (default: decode sRGB)")
@@ -70,6 +73,8 @@ def corner(args) -> dict:
         raise ValueError(f"--window must be >= 1, got {args.window}")
     if args.refine_every < 1:
         raise ValueError(f"--refine-every must be >= 1, got {args.refine_every}")
+    if not 0 <= args.refine_aim <= size // 4:
+        raise ValueError(f"--refine-aim must be a number of pixels in [0, {size // 4}], got {args.refine_aim}")
     renderer = lamp_box = None
     if args.refine:  # built before the frames are read: a corner file that cannot be rendered fails early
         renderer, lamp_box = _refinement_renderer(kind, setting, spec, camera)
@@ -110,7 +115,8 @@ def corner(args) -> dict:
         picked = range(0, len(means), args.refine_every)
         for n, k in enumerate(picked):
             r = _corners.refine_corner(renderer, means[k], result.position[k], result.cov[k],
-                                       heatmap=result.heatmap[k], lamp_box=lamp_box, extra_starts=previous, seed=k)
+                                       heatmap=result.heatmap[k], lamp_box=lamp_box, aim=args.refine_aim,
+                                       extra_starts=previous, seed=k)
             previous = [r.position]
             refined.append(dict(frame=int(frame_index[k]), x=float(r.position[0]), z=float(r.position[1]),
                                 accepted=r.accepted, improvement=float(r.improvement), noise=float(r.noise),
