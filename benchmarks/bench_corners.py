@@ -23,8 +23,10 @@ refined frame; `refined.png` plots each scene's network error against its refine
 rendered and the real corner) refines N fresh L and T scenes (lamp fixed) against a model of the
 corner that is off on purpose, one fault at a time: the walls moved by 1 and 2 cm, the camera
 turned by 1 degree, the lamp moved by 5 cm, the floor's texture unknown (flat at its mean albedo),
-and every surface's texture and the clutter unknown (what a corner file describes). It writes
-`mismatch.json`: the network's and the refined mean and median d per fault.
+every surface's texture and the clutter unknown; and the corner file alone (walls, camera, lamp:
+every surface at albedo 0.5, no clutter, as `hiddenjax corner --refine` renders it), without and
+with the albedo read off a frame of the empty corner (`DifferentialRenderer.calibrated`, what the
+command does). It writes `mismatch.json`: the network's and the refined mean and median d per fault.
 
 Differential rendering (issue 6, thesis 3.2.1 reports ~15x): the exact one-bounce difference image
 by sampling the object and its shadow (`DifferentialRenderer.render(negative=True)`) against the
@@ -77,6 +79,7 @@ def main(argv=None):
     parser.add_argument("--kinds", nargs="+", default=list(hc.SCENE_CLASSES), choices=hc.SCENE_CLASSES)
     parser.add_argument("--mismatch", type=int, default=0, metavar="N",
                         help="refine N fresh L and T scenes against a corner model that is off, one fault at a time")
+    parser.add_argument("--faults", nargs="+", default=list(FAULTS), choices=FAULTS, help="--mismatch: which faults")
     parser.add_argument("--aim", type=int, default=0, help="refine_corner's aim: the camera's aim fitted as an image "
                         "shift within +-AIM pixels (default 0)")
     args = parser.parse_args(argv)
@@ -86,7 +89,7 @@ def main(argv=None):
     args.out.mkdir(parents=True, exist_ok=True)
     quick = args.quick
     if args.mismatch:
-        mismatch = model_mismatch(args.mismatch, args.seed, args.aim)
+        mismatch = model_mismatch(args.mismatch, args.seed, args.aim, args.faults)
         (args.out / "mismatch.json").write_text(json.dumps(mismatch, indent=2))
         return mismatch
     shipped = shipped_networks(args.fresh or (24 if quick else 1000), seed=args.seed, refine=args.refine,
@@ -274,6 +277,17 @@ def refined_rows(kind: str, setting: str, data, loc, seed: int, aim: int = 0) ->
                 _network_d=network_d * 100, _refined_d=refined_d * 100)
 
 
+def _faulty_renderer(scene, fault: str, rng):
+    """The renderer of `scene`'s model with one fault (see the module docstring); the object unknown."""
+    if fault.startswith("corner file"):  # what a corner file describes: walls, camera, lamp
+        geometry = {k: scene.params[k] for k in hc.GEOMETRY_KEYS[scene.kind]}
+        r = hc.DifferentialRenderer(hc.corner_scene(scene.kind, geometry, scene.camera, scene.lamp))
+        if fault == "corner file + background":
+            r = r.calibrated(hc.render_full(scene, with_object=False, samples=64, seed=int(rng.integers(1 << 30))))
+        return r
+    return hc.DifferentialRenderer(_faulty(scene, fault, rng))
+
+
 def _faulty(scene, fault: str, rng):
     """The model of `scene` with one fault (see the module docstring); the hidden object is unknown."""
     model = model_scene(scene, "fixed-lamp")
@@ -312,11 +326,12 @@ def _walls(kind: str, params: dict, scene) -> tuple:
     return hc.corner_scene(kind, geometry, scene.camera, scene.lamp).meshes
 
 
-FAULTS = ("none", "walls 1", "walls 2", "camera 1 deg", "lamp 5 cm", "floor texture", "textures and clutter")
+FAULTS = ("none", "walls 1", "walls 2", "camera 1 deg", "lamp 5 cm", "floor texture", "textures and clutter",
+          "corner file", "corner file + background")
 
 
-def model_mismatch(count: int, seed: int, aim: int = 0) -> dict:
-    """Network and refined d on `count` fresh L and T scenes (lamp fixed) for each fault in `FAULTS`."""
+def model_mismatch(count: int, seed: int, aim: int = 0, faults=FAULTS) -> dict:
+    """Network and refined d on `count` fresh L and T scenes (lamp fixed) for each of `faults`."""
     table = Table()
     table.append(("class", "model of the corner", "network d (cm)", "refined d (cm)", "median", "worse by > 1 cm",
                   "accepted"))
@@ -327,13 +342,12 @@ def model_mismatch(count: int, seed: int, aim: int = 0) -> dict:
                                    progress=False)
         loc = hc.localize(model, data.images)
         network_d = hc.localization_errors(loc.position, data.positions)["d"] * 100
-        for fault in FAULTS:
+        for fault in faults:
             rng = np.random.default_rng([seed, FAULTS.index(fault)])
             refined = []
             for i, image in enumerate(data.images):
                 scene = hc.random_corner_scene(kind, seed * 1_000_003 + i, lamp=hc.FIXED_LAMP)
-                faulty = _faulty(scene, fault, rng)
-                r = hc.refine_corner(hc.DifferentialRenderer(faulty), image, loc.position[i], loc.cov[i],
+                r = hc.refine_corner(_faulty_renderer(scene, fault, rng), image, loc.position[i], loc.cov[i],
                                      heatmap=loc.heatmap[i], aim=aim, seed=i)
                 refined.append((r.position, r.accepted))
             d = hc.localization_errors(np.array([p for p, _ in refined]), data.positions)["d"] * 100

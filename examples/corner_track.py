@@ -9,8 +9,13 @@ corner file and the empty corner's frame. `hiddenjax corner` reads the folder, s
 track; this script scores it against the true path (d per frame, as thesis Table 3.1) and draws
 both. Writes `frames/`, `empty.exr`, `corner.toml`, `track/track.json`, `track/track.png`, `corner_track.png` and `results.json`.
 
+`--refine-every K` also refines every K-th estimate against renders of the corner (`hiddenjax
+corner --refine`, thesis 3.5.2). The corner file then carries the camera and the walls, as a
+measured corner's would: the renderer knows neither the surfaces' textures and albedos nor the
+clutter, nor the object's size, and the plot and `results.json` score the refined places too.
+
     python examples/corner_track.py [--kind L|T|table] [--setting fixed-lamp|random-lamp] [--frames N]
-                                    [--window N] [--quick] [--out DIR]
+                                    [--window N] [--refine-every K] [--quick] [--out DIR]
 """
 
 import argparse
@@ -53,6 +58,8 @@ def main(argv=None):
     parser.add_argument("--window", type=int, default=1)
     parser.add_argument("--samples", type=int, default=16, help="object points per pixel in each frame")
     parser.add_argument("--out", type=Path, default=Path("out/corner_track"))
+    parser.add_argument("--refine-every", type=int, default=0, metavar="K",
+                        help="refine every K-th estimate against the rendered corner (default 0: none)")
     parser.add_argument("--quick", action="store_true", help="12 frames")
     args = parser.parse_args(argv)
     hj.enable_compilation_cache()
@@ -72,11 +79,18 @@ def main(argv=None):
         hj.io.write_exr(out / "frames" / f"frame_{k:04d}.exr", frame.astype(np.float32))
     t_render = time.perf_counter() - t0
     lamp = hc.setting_lamp(args.setting)
+    p = scene.params
     (out / "corner.toml").write_text(
         f'[corner]\nclass = "{args.kind}"\nsetting = "{args.setting}"\n'
-        + ("" if lamp is None else f"lamp = {list(lamp)}\n"))
+        + ("" if lamp is None else f"lamp = {list(lamp)}\n")
+        + ("" if not args.refine_every else  # the measured corner: camera and walls, for --refine
+           f"[corner.camera]\norigin = {list(p['camera_origin'])}\ntarget = {list(p['camera_target'])}\n"
+           f"fov = {p['fov']}\n[corner.geometry]\n"
+           + "".join(f"{k} = {list(p[k]) if np.ndim(p[k]) else p[k]}\n" for k in hc.GEOMETRY_KEYS[args.kind])))
+    refine = ["--refine", "--refine-every", str(args.refine_every)] if args.refine_every else []
     status = cli.main(["corner", str(out / "frames"), "-o", str(out / "track"), "--corner", str(out / "corner.toml"),
-                       "--background", str(out / "empty.exr"), "--window", str(args.window), "--linear", "--quiet"])
+                       "--background", str(out / "empty.exr"), "--window", str(args.window), "--linear", "--quiet",
+                       *refine])
     if status:
         raise SystemExit(status)
     result = json.loads((out / "track" / "track.json").read_text())
@@ -86,20 +100,34 @@ def main(argv=None):
     summary = dict(kind=args.kind, setting=args.setting, frames=n, window=args.window, render_s=t_render,
                    frames_per_second=result["frames_per_second"], errors=table,
                    per_frame_cm=(np.linalg.norm(est - truth, axis=1) * 100).tolist())
+    refined = None
+    if result["refined"]:
+        refined = np.array([[r["x"], r["z"]] for r in result["refined"]])
+        frames = np.array([r["frame"] for r in result["refined"]])
+        network = est[np.searchsorted([e["frame"] for e in result["estimates"]], frames)]
+        summary["refined"] = dict(frames=frames.tolist(), errors=hc.error_table(refined, path[frames]),
+                                  network_errors=hc.error_table(network, path[frames]),
+                                  seconds_per_frame=float(np.mean([r["seconds"] for r in result["refined"]])))
     hj.io.write_text(out / "results.json", json.dumps(summary, indent=2))
-    plot(out / "corner_track.png", scene, path, est, summary)
+    plot(out / "corner_track.png", scene, path, est, summary, refined)
     print(f"{args.kind} ({args.setting}), {n} frames: d = {table['d']['mean']:.2f} +- {table['d']['std']:.2f} cm "
           f"(median {table['median_d']:.2f}), located at {result['frames_per_second']:.0f} frames/s")
+    if refined is not None:
+        r = summary["refined"]
+        print(f"refined {len(refined)} frames: d = {r['errors']['d']['mean']:.2f} cm (the network on the same frames: "
+              f"{r['network_errors']['d']['mean']:.2f}), {r['seconds_per_frame']:.1f} s per frame")
     return summary
 
 
-def plot(path, scene, truth, est, summary):
+def plot(path, scene, truth, est, summary, refined=None):
     p = scene.params
     fig, ax = plt.subplots(figsize=(5.5, 4.5))
     ax.plot([0, p["length_hidden"]], [0, 0], "k-", lw=3, label="occluding wall")
     ax.plot([0, p["length_hidden"]], [p["width_hidden"]] * 2, "k--", lw=1)
     ax.plot(*truth.T, "g-", lw=2, label="true walk")
     ax.plot(*est.T, "m.-", lw=0.8, label="hiddenjax corner")
+    if refined is not None:
+        ax.plot(*refined.T, "bs", ms=4, mfc="none", label="refined (--refine)")
     ax.set_aspect("equal")
     ax.set_xlabel("x along the hidden corridor (m)")
     ax.set_ylabel("z (m)")

@@ -110,6 +110,7 @@ def corner(args) -> dict:
                  for f, p, q, c in zip(frame_index, result.position, result.polar, result.cov)]
     refined = None
     if args.refine:
+        renderer = renderer.calibrated(back)  # the surfaces' albedo, which the corner file does not give
         means, _ = _corners.window_means(differences, args.window)
         refined, previous = [], []
         picked = range(0, len(means), args.refine_every)

@@ -17,6 +17,7 @@ without the object with the same random numbers. Both estimate the same image; t
 them against each other and `benchmarks/bench_corners.py` measures the speed-up at equal noise.
 """
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -83,6 +84,33 @@ class DifferentialRenderer:
         """The lamp's direct radiance at every visible point, shadowed by the background."""
         lit = ~_blocked(self.caster, self.points, np.broadcast_to(lamp, self.points.shape))
         return lit * _lamp_radiance(self.albedo, self.points, self.normals, lamp, self.scene.intensity)
+
+    def calibrated(self, background, *, samples: int = 64, seed: int = 0) -> "DifferentialRenderer":
+        """A copy whose visible surfaces' albedo is read off `background (H, W)`, a frame of the empty corner.
+
+        A frame of the empty corner is `b(s) = rho(s)/pi E(s)`; the model's own frame
+        `render_full(with_object=False)` is `rho_m(s)/pi E_m(s)`. Where the model's lamp and walls
+        are right (`E_m ~ E` up to a scale), `rho(s) ~ rho_m(s) b(s) / b_m(s)`: the textures,
+        albedos and clutter shadows that a corner file does not describe, per pixel. The ratio is
+        clipped to 0.2-5 times its median (pixels the model leaves nearly dark, noisy ratios); its
+        overall scale is irrelevant (the refinement's loss fits the intensity).
+        """
+        background = np.asarray(background, np.float64)
+        if background.shape != self.shape:
+            raise ValueError(f"the background frame is {background.shape}, the renderer's camera {self.shape}")
+        seen = background.ravel()[self.valid]
+        if not np.all(np.isfinite(background)) or not np.any(seen > 0):
+            raise ValueError("the background frame must be finite and brighter than zero where the camera sees the "
+                             "corner")
+        model = render_full(self.scene, with_object=False, samples=samples, seed=seed).ravel()[self.valid]
+        ratio = np.where(model > 0, seen / np.where(model > 0, model, 1.0), np.nan)
+        middle = np.nanmedian(ratio)
+        if not middle > 0:
+            raise ValueError("the background frame is dark where the model of the corner is lit: check the lamp")
+        out = copy.copy(self)
+        out.albedo = self.albedo * np.clip(np.nan_to_num(ratio, nan=middle), 0.2 * middle, 5 * middle) / middle
+        out.direct = out._direct(self.scene.lamp)
+        return out
 
     @property
     def shape(self) -> tuple[int, int]:
