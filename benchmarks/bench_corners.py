@@ -228,7 +228,7 @@ def shipped_networks(count: int, *, seed: int = 7, refine: bool = False, setting
                               f"worse by > 1 cm: {100 * row['refined_worse_share']:.1f}%",
                               f"accepted {100 * row['accepted_share']:.0f}%",
                               f"{row['refine_seconds']['mean']:.1f} s/frame (max {row['refine_seconds']['max']:.1f})"))
-                scatter.append((f"{kind}, {setting}", row.pop("_network_d"), row.pop("_refined_d")))
+                scatter.append((f"{kind}, {setting}", row["network_d_cm"], row["refined_d_cm"]))
             result["rows"].append(row)
     # Throughput of track() once compiled: 512 differential frames of the last class.
     frames = np.resize(data.images, (512,) + data.images.shape[1:])
@@ -274,7 +274,7 @@ def refined_rows(kind: str, setting: str, data, loc, seed: int, aim: int = 0) ->
                 accepted_share=float(np.mean(accepted)),
                 refine_seconds=dict(mean=float(np.mean(seconds)), median=float(np.median(seconds)),
                                     max=float(np.max(seconds))),
-                _network_d=network_d * 100, _refined_d=refined_d * 100)
+                network_d_cm=(network_d * 100).tolist(), refined_d_cm=(refined_d * 100).tolist())
 
 
 def _faulty_renderer(scene, fault: str, rng):
@@ -364,7 +364,7 @@ def model_mismatch(count: int, seed: int, aim: int = 0, faults=FAULTS) -> dict:
 
 
 def _plot_refined(scatter, path, count: int):
-    fig, axes = plt.subplots(1, len(scatter), figsize=(3.2 * len(scatter), 3.4), squeeze=False)
+    fig, axes = plt.subplots(1, len(scatter), figsize=(3.2 * len(scatter), 3.9), squeeze=False)
     for ax, (name, before, after) in zip(axes[0], scatter):
         top = float(max(np.max(before), np.max(after), 1.0))
         ax.plot([0, top], [0, top], "k-", lw=0.8, label="unchanged")

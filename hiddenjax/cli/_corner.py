@@ -1,5 +1,6 @@
 """`hiddenjax corner`: a hidden object around a corner from frames of the floor."""
 
+import argparse
 import json
 import sys
 import time
@@ -41,6 +42,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--refine-every", type=int, default=1, metavar="K",
                    help="refine every K-th estimate, each search also started from the previous refined place "
                         "(default 1: every estimate)")
+    p.add_argument("--refine-steps", type=int, help=argparse.SUPPRESS)  # the variational refinement's; unused
     p.add_argument("--refine-aim", type=int, default=0, metavar="PX",
                    help="--refine: fit the camera's aim as an image shift of up to PX pixels at the network's 128 "
                         "(about 2 per degree; default 0: the corner file's camera is exact)")
@@ -75,6 +77,9 @@ def corner(args) -> dict:
         raise ValueError(f"--refine-every must be >= 1, got {args.refine_every}")
     if not 0 <= args.refine_aim <= size // 4:
         raise ValueError(f"--refine-aim must be a number of pixels in [0, {size // 4}], got {args.refine_aim}")
+    if args.refine_steps is not None:
+        print("warning: --refine-steps is no longer used: --refine searches and checks instead of taking variational "
+              "steps (hiddenjax.corners.refine_location keeps them)", file=sys.stderr)
     renderer = lamp_box = None
     if args.refine:  # built before the frames are read: a corner file that cannot be rendered fails early
         renderer, lamp_box = _refinement_renderer(kind, setting, spec, camera)
