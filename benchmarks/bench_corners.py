@@ -280,8 +280,7 @@ def refined_rows(kind: str, setting: str, data, loc, seed: int, aim: int = 0) ->
 def _faulty_renderer(scene, fault: str, rng):
     """The renderer of `scene`'s model with one fault (see the module docstring); the object unknown."""
     if fault.startswith("corner file"):  # what a corner file describes: walls, camera, lamp
-        geometry = {k: scene.params[k] for k in hc.GEOMETRY_KEYS[scene.kind]}
-        r = hc.DifferentialRenderer(hc.corner_scene(scene.kind, geometry, scene.camera, scene.lamp))
+        r = hc.DifferentialRenderer(_corner_file(scene, scene.params))
         if fault == "corner file + background":
             r = r.calibrated(hc.render_full(scene, with_object=False, samples=64, seed=int(rng.integers(1 << 30))))
         return r
@@ -296,7 +295,7 @@ def _faulty(scene, fault: str, rng):
         p = dict(scene.params)
         for k in ("width_visible", "width_hidden", "length_visible", "length_hidden", "wall_height"):
             p[k] = p[k] + shift * rng.choice([-1.0, 1.0])
-        walls = _walls(scene.kind, p, scene)
+        walls = _corner_file(scene, p).meshes
         return dataclasses.replace(model, meshes=tuple(walls) + model.meshes[len(walls):])
     if fault == "camera 1 deg":
         c = scene.camera
@@ -312,18 +311,19 @@ def _faulty(scene, fault: str, rng):
     if fault == "floor texture":
         return dataclasses.replace(model, texture=(flat,) + model.texture[1:])
     if fault == "textures and clutter":
-        walls = len(_walls(scene.kind, scene.params, scene))
+        walls = len(_corner_file(scene, scene.params).meshes)
         return dataclasses.replace(model, meshes=model.meshes[:walls], albedo=model.albedo[:walls],
                                    texture=(flat,) * walls)
     assert fault == "none", fault
     return model
 
 
-def _walls(kind: str, params: dict, scene) -> tuple:
-    """The floor and walls (L, T) of a corner with these dimensions, as `corner_scene` builds them."""
-    assert kind in ("L", "T"), kind
-    geometry = {k: params[k] for k in hc.GEOMETRY_KEYS[kind]}
-    return hc.corner_scene(kind, geometry, scene.camera, scene.lamp).meshes
+def _corner_file(scene, params: dict):
+    """What a corner file gives of `scene` with the dimensions `params`: `corner_scene`'s walls (the
+    meshes are the floor and walls only for L and T), camera and lamp, every surface at albedo 0.5."""
+    assert scene.kind in ("L", "T"), scene.kind
+    geometry = {k: params[k] for k in hc.GEOMETRY_KEYS[scene.kind]}
+    return hc.corner_scene(scene.kind, geometry, scene.camera, scene.lamp)
 
 
 FAULTS = ("none", "walls 1", "walls 2", "camera 1 deg", "lamp 5 cm", "floor texture", "textures and clutter",
