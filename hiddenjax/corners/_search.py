@@ -47,8 +47,9 @@ class CornerRefinement(NamedTuple):
     """The outcome of `refine_corner`; positions are `(x, z)` metres in the corner frame.
 
     `position (2,)` the answer: `searched` when the check passed (`accepted`), else `network`.
-    `searched (2,)` the best place the search found, with the object's `radius` and `height` (m)
-    and the `lamp (3,)` fitted there (or the renderer's lamp). `improvement` is the check's mean
+    `searched (2,)` the best place the search found. The object's `radius` and `height` (m) and
+    the `lamp (3,)` are those fitted at `position` (the lamp: the renderer's unless it was fitted,
+    `lamp_box`). `improvement` is the check's mean
     loss decrease of `searched` over the network's place, `noise` its standard error, `loss` the
     check's mean loss at the answer. `renders` counts the images rendered, `seconds` the wall time.
     """
