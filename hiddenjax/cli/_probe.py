@@ -9,7 +9,7 @@ import numpy as np
 from .. import io
 from .. import photo as _photo
 from ..photo._probe import DEFAULT_GRID, DEFAULT_MAX_SIZE
-from ..scene import load_mesh
+from ..scene import MeasuredReflectance, load_mesh
 from ._common import IMAGE_HELP, _output_folder, _read_capture, capture_options, capture_srgb
 
 
@@ -35,7 +35,13 @@ def add_parsers(sub) -> None:
                    help=f"the object is averaged down to at most this many pixels across "
                         f"(default {DEFAULT_MAX_SIZE})")
     p.add_argument("--lights", type=int, default=4, help="the most lights reported per photo (default 4)")
-    p.add_argument("-o", "--output", required=True, help="output folder: env.exr, env.png, lights.json, results.json")
+    p.add_argument("--reflectance", metavar="NPZ", help="the object's measured BRDF (from --measure-reflectance): "
+                                                         "the lights are refined with it instead of a diffuse model")
+    p.add_argument("--measure-reflectance", metavar="LIGHTS", help="instead of solving: the photos are of a sphere "
+                   "under one known distant light each, LIGHTS a text file of one line per photo, x y z (camera "
+                   "frame) and optionally its power (one number, or r g b); writes OUT/reflectance.npz")
+    p.add_argument("-o", "--output", required=True, help="output folder: env.exr, env.png, lights.json, results.json "
+                                                         "(or reflectance.npz)")
     capture_options(p)
     p.set_defaults(run=probe)
 
@@ -49,6 +55,9 @@ def probe(args) -> dict:
         raise ValueError("--intrinsics is for --object; a --sphere is seen by a far camera fitted to its mask")
     if args.lights < 1:
         raise ValueError(f"--lights must be at least 1, got {args.lights}")
+    if args.measure_reflectance is not None:
+        return measure(args, out)
+    reflectance = None if args.reflectance is None else MeasuredReflectance.load(args.reflectance)
     stems = [Path(p).stem for p in args.photos]
     if not args.times and len(set(stems)) != len(stems):
         raise ValueError("two photos share a file name: each is written to OUT/<its stem>/; rename one")
@@ -63,11 +72,11 @@ def probe(args) -> dict:
                              f"{mask.shape[1]}x{mask.shape[0]}: give the mask of this view")
     t0 = time.perf_counter()
     if args.sphere:
-        view = _photo.Probe.sphere(mask, grid=tuple(args.grid), max_size=args.max_size)
+        view = _photo.Probe.sphere(mask, grid=tuple(args.grid), max_size=args.max_size, reflectance=reflectance)
     else:
         intr = _photo.Intrinsics.load(args.intrinsics)
         view = _photo.Probe.mesh(load_mesh(args.object), intr.K, (mask.shape[1], mask.shape[0]), mask,
-                                 grid=tuple(args.grid), max_size=args.max_size)
+                                 grid=tuple(args.grid), max_size=args.max_size, reflectance=reflectance)
     build = time.perf_counter() - t0
     results, written = [], []
     for g, capture in zip(groups, captures):
@@ -94,4 +103,42 @@ def probe(args) -> dict:
     print(f"wrote {out}/: {len(written)} map(s) and lights.json (camera frame: x right, y up, z to the camera); "
           f"the first photo's brightest light towards ({first[0]:.3f}, {first[1]:.3f}, {first[2]:.3f}); "
           f"build {build:.1f} s, {np.mean([w['seconds'] for w in written]):.2f} s per photo")
+    return summary
+
+
+def measure(args, out) -> dict:
+    """`hiddenjax probe --measure-reflectance LIGHTS`: a sphere's BRDF from photos under known lights."""
+    if not args.sphere:
+        raise ValueError("--measure-reflectance measures a sphere's BRDF (its normals from the mask): give --sphere")
+    if args.times or args.reflectance:
+        raise ValueError("--measure-reflectance takes one photo per light: drop --times and --reflectance")
+    try:
+        table = np.loadtxt(args.measure_reflectance, ndmin=2)
+    except (OSError, ValueError) as error:
+        raise ValueError(f"cannot read the lights {args.measure_reflectance}: {error}") from None
+    if table.shape[0] != len(args.photos) or table.shape[1] not in (3, 4, 6):
+        raise ValueError(f"{args.measure_reflectance} has {table.shape[0]} lines of {table.shape[1]} numbers; need one "
+                         f"line per photo ({len(args.photos)}): x y z, x y z power, or x y z r g b")
+    mask_image = io.read_image(args.mask)
+    mask = (mask_image.mean(axis=-1) if mask_image.ndim == 3 else mask_image) > 0.5
+    shots = [_photo.read_photo(p, srgb=capture_srgb(args)) for p in args.photos]
+    for path, shot in zip(args.photos, shots):
+        if shot.radiance.shape[:2] != mask.shape:
+            raise ValueError(f"{path} is {shot.radiance.shape[1]}x{shot.radiance.shape[0]} but the mask is "
+                             f"{mask.shape[1]}x{mask.shape[0]}: give the mask of this view")
+    photos = np.stack([s.radiance if s.radiance.ndim == 3 else s.radiance[..., None] for s in shots])
+    powers = None if table.shape[1] == 3 else table[:, 3:]
+    if powers is not None and powers.shape[1] == 3 and photos.shape[3] != 3:
+        raise ValueError(f"{args.measure_reflectance} gives r g b powers but the photos have one channel")
+    reflectance = _photo.measure_reflectance(mask, photos, table[:, :3], powers,
+                                             np.stack([s.saturated for s in shots]))
+    out.mkdir(parents=True, exist_ok=True)
+    reflectance.save(out / "reflectance.npz")
+    measured = int(np.count_nonzero(reflectance.counts))
+    summary = dict(photos=len(shots), bins=list(reflectance.table.shape), measured_bins=measured,
+                   b_range=[float(reflectance.table.min()), float(reflectance.table.max())])
+    io.write_text(out / "results.json", json.dumps(summary, indent=2))
+    print(f"wrote {out}/reflectance.npz: the sphere's BRDF from {len(shots)} photos ({measured} of "
+          f"{reflectance.table.size} bins measured); use it with `hiddenjax probe ... --reflectance "
+          f"{out}/reflectance.npz`")
     return summary

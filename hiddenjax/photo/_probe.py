@@ -16,17 +16,30 @@ saturated pixels left out by `IlluminationOperator.masked`), its dominant lights
 (`dominant_lights`), and those refined against the photo at continuous directions
 (`refine_lights`). Large objects are averaged down by a whole factor first (at most `max_size`
 pixels across): the lights need the shading's shape, not every pixel.
+
+A real ball is rarely Lambertian, and two lights on a shiny one are read wrongly by a diffuse model
+(the misfit of one is taken for the other's terminator). With the object's BRDF measured from
+photos of it under known lights (`measure_reflectance`, `MeasuredReflectance`), the lights are
+refined with it instead: first with its lobe blurred by `COARSE_LOBE` (fewer local minima), then
+with the sharp table. A light is added where the map showed none (a light one of its peaks merged
+with another: `refine_lights(grow=1)`) in the first, with a diffuse model's 5% tolerance; the
+second keeps a light only if it halves the residual (`MEASURED_TOLERANCE`: the measured model's
+error on a real ball is a few percent, which the 5% tolerance would read as more lights). No pixel
+is left out as a highlight, since the table models them. The map itself stays the diffuse model's.
 """
 
+import copy
 import dataclasses
 import math
 
 import numpy as np
 import trimesh
 
-from ..scene import Camera, EnvGrid, Scene, Surface
+from ..scene import Camera, EnvGrid, MeasuredReflectance, Scene, Surface
+from ..scene._measured import DEFAULT_EDGES
 from ..solvers import IlluminationOperator, L2Prior
 from ..solvers import Lights, dominant_lights, refine_lights
+from ..solvers._lights import DROP_TOLERANCE
 from ..transport import TransportMatrix, transport_matrix
 from ..transport import DistantLightRows
 
@@ -36,6 +49,8 @@ MIN_SIZE = 16  # pixels across: a smaller object is refused
 DISC_OVERLAP = 0.92  # a sphere's mask must share this fraction (intersection over union) with its fitted disc
 MAX_SATURATED = 0.5  # a photo saturated over more of the object is refused
 ROW_SAMPLES = 4  # footprint samples of the lights' rows (the map's matrix takes the pixel centres)
+COARSE_LOBE = 8.0  # degrees: the measured lobe blurred for the first of the two refinements
+MEASURED_TOLERANCE = 1.0  # with a measured reflectance, a light more must halve the residual (module docstring)
 PROBE_PRIOR = L2Prior(smooth=1e-3, ridge=1e-3)  # weak: the lights are refined against the photo anyway
 _FAR = 1000.0  # camera distance in sphere radii
 _TO_OPENCV = np.diag([1.0, -1.0, -1.0])  # the probe's frame (x right, y up, z to the camera) -> OpenCV's camera
@@ -54,6 +69,58 @@ def fit_sphere(mask) -> tuple[float, float, float]:
         raise ValueError(f"the mask is not a disc (it shares {overlap:.0%} with the disc of its area and centre, "
                          f"need {DISC_OVERLAP:.0%}): mask the sphere alone, or give --object MESH for another shape")
     return r0, c0, radius
+
+
+def sphere_normals(mask, inside: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """`(pixels (P, 2) row, col, normals (P, 3))` of the mask's pixels whose centres lie within `inside` of
+    the fitted disc's radius (`fit_sphere`), in the probe's frame (x right, y up, z towards the far camera)."""
+    row, col, radius = fit_sphere(mask)
+    rows, cols = np.nonzero(_check_mask(mask))
+    x, y = (cols + 0.5 - col) / radius, -(rows + 0.5 - row) / radius
+    keep = x**2 + y**2 < inside**2
+    normals = np.column_stack([x, y, np.sqrt(np.maximum(0.0, 1 - x**2 - y**2))])[keep]
+    return np.column_stack([rows, cols])[keep], normals
+
+
+def measure_reflectance(mask, photos, directions, intensities=None, saturated=None,
+                        edges=DEFAULT_EDGES) -> MeasuredReflectance:
+    """A sphere's BRDF (`MeasuredReflectance`) from `photos (M, H, W[, C])` (linear) of it in one view, each
+    under one distant light from `directions (M, 3)` (the probe's frame: x right, y up, z towards the
+    camera) of power `intensities (M[, C])` (default 1), `saturated (M, H, W)` pixels left out.
+
+    The normals are the fitted disc's (`fit_sphere`) at the pixel centres inside 0.98 of its radius
+    (a pixel on the silhouette mixes the ball and what is behind it); the view is the far camera's,
+    +z. The photos' channels are divided by the lights' and averaged: one grey table, whose scale
+    is the ball's albedo over the lights' units."""
+    mask = _check_mask(mask)
+    photos = np.asarray(photos, np.float64)
+    directions = np.asarray(directions, np.float64)
+    M = len(photos)
+    if photos.ndim not in (3, 4) or photos.shape[1:3] != mask.shape:
+        raise ValueError(f"photos must be (M, H, W[, C]) with (H, W) the mask's {mask.shape}, got {photos.shape}")
+    if directions.shape != (M, 3) or not np.all(np.isfinite(directions)) or np.any(np.linalg.norm(directions, axis=1) == 0):
+        raise ValueError(f"directions must be {M} finite, non-zero light directions (M, 3), one per photo; got shape "
+                         f"{directions.shape}")
+    if M < 4:
+        raise ValueError(f"{M} photos measure too little of the reflectance: give at least 4, under lights spread "
+                         f"over the view's side (a few dozen fill the table)")
+    grey = photos if photos.ndim == 3 else photos.mean(axis=-1)
+    if intensities is not None:
+        e = np.asarray(intensities, np.float64).reshape(M, -1)
+        if e.shape[1] not in (1, (photos.shape[3] if photos.ndim == 4 else 1)) or not np.all(e > 0):
+            raise ValueError(f"intensities must be positive, one per photo (M,) or per photo and channel (M, C); got "
+                             f"shape {np.shape(intensities)}")
+        grey = (photos / e[:, None, None, :]).mean(axis=-1) if photos.ndim == 4 else photos / e[:, :1, None]
+    pixels, normals = sphere_normals(mask, inside=0.98)
+    values = grey[:, pixels[:, 0], pixels[:, 1]]
+    used = np.ones(values.shape, bool)
+    if saturated is not None:
+        saturated = np.asarray(saturated, bool)
+        if saturated.shape != (M,) + mask.shape:
+            raise ValueError(f"saturated must be (M, H, W) = {(M,) + mask.shape}, got {saturated.shape}")
+        used = ~saturated[:, pixels[:, 0], pixels[:, 1]]
+    view = np.broadcast_to([0.0, 0.0, 1.0], normals.shape)
+    return MeasuredReflectance.measure(normals, view, values, directions, used, edges)
 
 
 def _check_mask(mask) -> np.ndarray:
@@ -83,7 +150,8 @@ class Probe:
     `factor` is the averaging-down factor, `T` the transport matrix (of the averaged image).
     """
 
-    def __init__(self, scene: Scene, camera: Camera, mask, factor: int, grid: EnvGrid, image_shape, samples: int = 16):
+    def __init__(self, scene: Scene, camera: Camera, mask, factor: int, grid: EnvGrid, image_shape, samples: int = 16,
+                 reflectance: MeasuredReflectance | None = None):
         self.scene, self.camera, self.factor, self.grid = scene, camera, factor, grid
         self.image_shape = tuple(image_shape)
         self.T: TransportMatrix = transport_matrix(scene, camera, grid, samples=samples, pixel_samples=1,
@@ -92,11 +160,26 @@ class Probe:
             raise ValueError(f"only {self.T.shape[0]} pixels see the object wholly: the object is too small in the "
                              f"photo; photograph it larger")
         self.operator = IlluminationOperator.build(self.T, prior=PROBE_PRIOR)
-        self.rows = DistantLightRows(scene, camera, self.T, pixel_samples=ROW_SAMPLES)
+        self._light_rows(reflectance)
+
+    def _light_rows(self, reflectance):
+        self.reflectance = reflectance
+        self.rows = DistantLightRows(self.scene, self.camera, self.T, pixel_samples=ROW_SAMPLES, reflectance=reflectance)
+        self.coarse_rows = None if reflectance is None else DistantLightRows(
+            self.scene, self.camera, self.T, pixel_samples=ROW_SAMPLES, reflectance=reflectance.blurred(COARSE_LOBE))
+
+    def with_reflectance(self, reflectance: MeasuredReflectance | None) -> "Probe":
+        """The same view (its transport matrix and solver shared, not rebuilt) with another measured
+        reflectance for the lights' refinement (None: the diffuse model)."""
+        other = copy.copy(self)
+        other._light_rows(reflectance)
+        return other
 
     @classmethod
-    def sphere(cls, mask, grid=DEFAULT_GRID, max_size: int = DEFAULT_MAX_SIZE, subdivisions: int = 5) -> "Probe":
-        """A sphere seen by a far camera, fitted to its `mask (H, W)` (module docstring)."""
+    def sphere(cls, mask, grid=DEFAULT_GRID, max_size: int = DEFAULT_MAX_SIZE, subdivisions: int = 5,
+               reflectance: MeasuredReflectance | None = None) -> "Probe":
+        """A sphere seen by a far camera, fitted to its `mask (H, W)` (module docstring); `reflectance` its
+        measured BRDF (`measure_reflectance`), for the lights' refinement."""
         mask = _check_mask(mask)
         row, col, radius = fit_sphere(mask)
         if 2 * radius < MIN_SIZE:
@@ -108,12 +191,13 @@ class Probe:
         K = np.array([[focal, 0, col / factor - 0.5], [0, focal, row / factor - 0.5], [0, 0, 1]])
         camera = Camera.from_opencv(K, _TO_OPENCV, [0, 0, _FAR], small.shape[1], small.shape[0])
         surface = Surface(trimesh.creation.icosphere(subdivisions=subdivisions), 1.0, smooth=True)
-        return cls(Scene([surface]), camera, small, factor, _grid(grid), mask.shape)
+        return cls(Scene([surface]), camera, small, factor, _grid(grid), mask.shape, reflectance=reflectance)
 
     @classmethod
-    def mesh(cls, mesh, K, image_size, mask, grid=DEFAULT_GRID, max_size: int = DEFAULT_MAX_SIZE) -> "Probe":
+    def mesh(cls, mesh, K, image_size, mask, grid=DEFAULT_GRID, max_size: int = DEFAULT_MAX_SIZE,
+             reflectance: MeasuredReflectance | None = None) -> "Probe":
         """A mesh in OpenCV camera coordinates (metres), seen by a camera of intrinsics `K (3, 3)` and
-        `image_size (width, height)`; `mask (H, W)` its pixels in the photo."""
+        `image_size (width, height)`; `mask (H, W)` its pixels in the photo; `reflectance` as `sphere`'s."""
         mask = _check_mask(mask)
         width, height = image_size
         if mask.shape != (height, width):
@@ -129,7 +213,8 @@ class Probe:
         K[:2] /= factor
         K[:2, 2] += 0.5 / factor - 0.5  # OpenCV's pixel centres are integers at either size
         camera = Camera.from_opencv(K, _TO_OPENCV, np.zeros(3), small.shape[1], small.shape[0])
-        return cls(Scene([Surface(mesh, 1.0, smooth=True)]), camera, small, factor, _grid(grid), mask.shape)
+        return cls(Scene([Surface(mesh, 1.0, smooth=True)]), camera, small, factor, _grid(grid), mask.shape,
+                   reflectance=reflectance)
 
     def averaged(self, photo) -> np.ndarray:
         """A photo of the view averaged down to `T`'s image (`factor` x `factor` blocks), as `solve` uses it."""
@@ -151,7 +236,15 @@ class Probe:
         op = self.operator.masked(~out) if np.any(observed) else self.operator
         solution = op.solve(small, throw=False)
         lights = dominant_lights(solution.env, self.grid, max_lights=max_lights)
-        lights = refine_lights(self.T, self.scene, self.camera, small, solution.env, lights, mask=~out, rows=self.rows)
+        if self.reflectance is None:
+            lights = refine_lights(self.T, self.scene, self.camera, small, solution.env, lights, mask=~out,
+                                   rows=self.rows)
+        else:  # (module docstring)
+            grow = min(1, max_lights - len(lights))  # one light the map merged with another
+            stages = ((self.coarse_rows, grow, DROP_TOLERANCE), (self.rows, 0, MEASURED_TOLERANCE))
+            for rows, grow, tolerance in stages:
+                lights = refine_lights(self.T, self.scene, self.camera, small, solution.env, lights, mask=~out,
+                                       rows=rows, grow=grow, tolerance=tolerance, highlights=False)
         return ProbeResult(np.asarray(solution.env), lights, int(np.count_nonzero(observed)))
 
 

@@ -16,7 +16,11 @@ distant lights (`DistantLightRows`): trust-region least squares on each light's 
 offset and log-power, refitted without the pixels far brighter than the fit (specular highlights).
 Every subset of the map's lights is a start (a light between two true ones, or one behind the
 object, can hold a local minimum); the fewest lights whose residual is within `DROP_TOLERANCE` of
-the best, or within the model's own error `MODEL_ERROR`, are kept.
+the best, or within the model's own error `MODEL_ERROR`, and that stand `separation` apart, are
+kept. With `grow`, a light is then added where one alone best explains the residual (over a
+lattice of directions, `R_c . r > 0` maximising `(R_c . r)^2 / |R_c|^2`) and all are refitted; it is
+kept if it lowers the residual by more than the same tolerance and stands apart: two lights the
+map merged into one peak.
 """
 
 import itertools
@@ -123,7 +127,8 @@ def dominant_lights(env, grid: EnvGrid | None = None, *, max_lights: int = 4, se
 
 def refine_lights(T: TransportMatrix, scene, camera, image, env, lights: Lights, mask=None,
                   rows: DistantLightRows | None = None, floor: float = DEFAULT_FLOOR,
-                  background: bool = False) -> Lights:
+                  background: bool = False, grow: int = 0, separation: float = DEFAULT_SEPARATION,
+                  tolerance: float = DROP_TOLERANCE, highlights: bool = True) -> Lights:
     """`lights` (from `dominant_lights(env)`) fitted to the photo at continuous directions (module docstring).
 
     **Arguments:** `T` the transport matrix `env` was solved with, of `scene` seen by `camera`;
@@ -133,7 +138,15 @@ def refine_lights(T: TransportMatrix, scene, camera, image, env, lights: Lights,
     the map outside the lights' caps first (a lit room around compact lights); by default the
     lights alone explain the photo (a dark room: the map's ringing outside the caps would bias
     them: on a closed-form two-light sphere, 0.2/0.5 degrees alone against 0.6/5.4 with it).
+    Lights fitted closer than `separation` degrees are not read as two; a light more is kept only if it
+    lowers the residual by more than `tolerance` of it (and the model's own error). `highlights=False`
+    keeps the pixels far brighter than the fit (a reflectance that models its highlights). `grow` lights at most are
+    added where the map showed none (module docstring): for a model good enough that a light the
+    map merged into another can be told apart (a measured reflectance, `DistantLightRows`).
     """
+    if not (0 < separation < 180) or grow < 0 or not tolerance >= 0:
+        raise ValueError(f"need separation in (0, 180) degrees, grow >= 0 and tolerance >= 0; got {separation}, {grow} "
+                         f"and {tolerance}")
     rows = DistantLightRows(scene, camera, T) if rows is None else rows
     image = np.asarray(image, dtype=np.float64)
     y = T.image_to_rows(image).reshape(T.shape[0], -1)
@@ -148,23 +161,93 @@ def refine_lights(T: TransportMatrix, scene, camera, image, env, lights: Lights,
     # every subset of the map's lights as a start (a light between two, or one behind the object, can hold a
     # local minimum that elimination from the full set keeps); the fewest lights within DROP_TOLERANCE of the best
     start = np.asarray(lights.directions, np.float64)
-    first = _fit(rows, keep, grey, start, passes=1)
+    passes = OUTLIER_PASSES if highlights else 0
+    first = _fit(rows, keep, grey, start, passes=min(passes, 1))
     subsets = [list(c) for k in range(1, len(start) + 1) for c in itertools.combinations(range(len(start)), k)]
     fits = [_fit(rows, keep, grey, start[c], first.used, passes=0) for c in subsets]
     rss = np.array([np.sum(f.excess[first.used] ** 2) for f in fits])
-    enough = (1 + DROP_TOLERANCE) * rss.min() + MODEL_ERROR**2 * np.sum(grey[first.used] ** 2)
-    best = min(i for i in range(len(fits)) if rss[i] <= enough)
+    apart = [_apart(f.directions, separation) for f in fits]
+    error = MODEL_ERROR**2 * np.sum(grey[first.used] ** 2)
+    enough = (1 + tolerance) * rss.min() + error
+    # the fewest lights within the tolerance first, then the rest by residual; the first whose refit stays apart
+    preferred = sorted((i for i in range(len(fits)) if apart[i]),
+                       key=lambda i: (rss[i] > enough, len(subsets[i]) if rss[i] <= enough else 0, rss[i]))
+    for best in preferred:
+        fit = _fit(rows, keep, grey, fits[best].directions, first.used, passes)
+        if _apart(fit.directions, separation):
+            break
     keep_lights = subsets[best]
-    fit = _fit(rows, keep, grey, fits[best].directions, first.used)
+    cells = [np.asarray(lights.cells)[k] for k in keep_lights]
+    candidates = _sphere_directions(GROW_CANDIDATES) if grow else None
+    for _ in range(grow):
+        grown = _grown(rows, keep, grey, fit, candidates, separation, passes)
+        if grown is None:
+            break
+        before, after = np.sum(fit.excess[fit.used] ** 2), np.sum(grown.excess[fit.used] ** 2)
+        if not (_apart(grown.directions, separation) and before > (1 + tolerance) * after + error):
+            break
+        fit = grown
+        cells.append(np.zeros(np.asarray(lights.cells).shape[1], bool))  # a light the map did not show
     d, used = fit.directions, fit.used
     R = rows(d)[keep][used]
     power = np.stack([scipy.optimize.nnls(R, residual[used, c])[0] for c in range(residual.shape[1])], axis=1)
     order = np.argsort(-power.mean(axis=1), kind="stable")
     strong = order[power[order].mean(axis=1) >= floor * power[order[0]].mean()]
     channels = image.shape[2:]  # the photo's, whatever the map's were
-    cells = np.asarray(lights.cells)[keep_lights]
+    cells = np.stack(cells)
     return Lights(d[strong], power[strong].reshape((len(strong),) + channels), cells[strong])
 
+
+GROW_CANDIDATES = 400  # directions over the sphere tried for a light the map did not show
+SPLIT = 0.6  # a light split in two starts them this fraction of `separation` either side of it
+SCREEN_EVALUATIONS = 10  # per light: the starts of a light more are compared after this many steps
+FIT_TOLERANCE = 1e-7  # relative change of the residual and of the offsets (radians) and log-powers that ends a fit
+
+
+def _sphere_directions(count: int) -> np.ndarray:
+    """`count` unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
+    k = np.arange(count) + 0.5
+    z = 1 - 2 * k / count
+    phi = np.pi * (1 + 5**0.5) * k
+    r = np.sqrt(1 - z**2)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def _apart(directions, separation: float) -> bool:
+    """Whether every two of `directions (K, 3)` are at least `separation` degrees apart."""
+    d = np.asarray(directions)
+    cosines = d @ d.T - 2 * np.eye(len(d))
+    return bool(np.all(cosines < np.cos(np.radians(separation))))
+
+
+def _grown(rows, keep, grey, fit: "_Fit", candidates, separation: float, passes: int) -> "_Fit | None":
+    """`fit` with one more light (module docstring), or None if no start explains any of the residual. Starts:
+    the candidate `c` maximising `(R_c . r)^2 / |R_c|^2` over the used pixels (`R_c . r > 0`, at least
+    `separation` from the fitted lights), and each fitted light split in two, `SPLIT * separation`
+    either side of it along four tangent axes (two lights the map merged into one peak between them).
+    Each start is fitted for `SCREEN_EVALUATIONS` steps per light without leaving pixels out; the best is
+    refitted."""
+    starts = []
+    far = np.all(candidates @ fit.directions.T < np.cos(np.radians(separation)), axis=1)
+    C = rows(candidates[far])[keep][fit.used]
+    r = fit.excess[fit.used]
+    projection = C.T @ r
+    gain = np.where(projection > 0, projection**2 / np.maximum(np.sum(C**2, axis=0), 1e-300), 0.0)
+    if np.any(gain > 0):
+        starts.append(np.vstack([fit.directions, candidates[far][np.argmax(gain)]]))
+    step = np.tan(np.radians(SPLIT * separation))
+    for k, d in enumerate(fit.directions):
+        e1, e2 = _tangent_frame(d)
+        others = np.delete(fit.directions, k, axis=0)
+        for angle in np.radians([0.0, 45.0, 90.0, 135.0]):
+            e = np.cos(angle) * e1 + np.sin(angle) * e2
+            pair = np.stack([d + step * e, d - step * e])
+            starts.append(np.vstack([others, pair / np.linalg.norm(pair, axis=1, keepdims=True)]))
+    if not starts:
+        return None
+    tried = [_fit(rows, keep, grey, start, fit.used, passes=0, evaluations=SCREEN_EVALUATIONS) for start in starts]
+    best = min(tried, key=lambda f: np.sum(f.excess[fit.used] ** 2))
+    return _fit(rows, keep, grey, best.directions, fit.used, passes)
 
 class _Fit(NamedTuple):
     directions: np.ndarray  # (K, 3)
@@ -172,7 +255,7 @@ class _Fit(NamedTuple):
     used: np.ndarray  # (P_kept,) bool: the pixels not left out as highlights
 
 
-def _fit(rows, keep, grey, start, used=None, passes: int = OUTLIER_PASSES) -> _Fit:
+def _fit(rows, keep, grey, start, used=None, passes: int = OUTLIER_PASSES, evaluations: int = 100) -> _Fit:
     """Directions and powers of `len(start)` lights fitted to `grey` (the kept pixels): trust-region least
     squares on the tangent-plane offsets and log-powers, refitted twice without the pixels brighter than
     the fit by `OUTLIER_SIGMAS` robust deviations (specular highlights no diffuse light explains; `passes`)."""
@@ -187,7 +270,7 @@ def _fit(rows, keep, grey, start, used=None, passes: int = OUTLIER_PASSES) -> _F
         """`(R (P_kept, K), J (P_kept, 3K))`: the rows, and the Jacobian of `R exp(z_s)` in `z`."""
         w, length = directions(z)
         R, G = rows.with_gradient(w)
-        R, G, s = R[keep], G[keep], np.exp(z[2 * K:])
+        R, G, s = R[keep], G[keep], _powers(z[2 * K:])
         J = np.empty((len(R), 3 * K))
         for k, (e1, e2) in enumerate(frames):
             for m, e in enumerate((e1, e2)):  # d w / d offset = (e - w (w.e)) / |u|
@@ -207,13 +290,19 @@ def _fit(rows, keep, grey, start, used=None, passes: int = OUTLIER_PASSES) -> _F
                 last["z"], (last["R"], last["J"]) = z.copy(), model(z)
             return last["R"], last["J"]
 
-        misfit = lambda z: evaluate(z)[0][used] @ np.exp(z[2 * K:]) - grey[used]
+        misfit = lambda z: evaluate(z)[0][used] @ _powers(z[2 * K:]) - grey[used]
         jacobian = lambda z: evaluate(z)[1][used]
-        z = scipy.optimize.least_squares(misfit, z, jac=jacobian, method="trf", x_scale=scale, max_nfev=100 * K).x
-        excess = grey - evaluate(z)[0] @ np.exp(z[2 * K:])  # highlights: brighter than any diffuse fit
+        z = scipy.optimize.least_squares(misfit, z, jac=jacobian, method="trf", x_scale=scale, max_nfev=evaluations * K,
+                                         ftol=FIT_TOLERANCE, xtol=FIT_TOLERANCE).x
+        excess = grey - evaluate(z)[0] @ _powers(z[2 * K:])  # highlights: brighter than any diffuse fit
         spread = 1.4826 * np.median(np.abs(excess - np.median(excess)))
         used = excess <= np.median(excess) + max(OUTLIER_SIGMAS * spread, OUTLIER_FLOOR * np.abs(grey).max())
     return _Fit(directions(z)[0], excess, used)
+
+
+def _powers(log_power):
+    """The powers of log-powers clipped to +-50: a step far out of the trust region does not overflow."""
+    return np.exp(np.clip(log_power, -50.0, 50.0))
 
 
 def _tangent_frame(d):

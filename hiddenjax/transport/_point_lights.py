@@ -10,7 +10,7 @@ map cell `j` of radiance `s / Omega_j` as the cell shrinks around `w` (eq. 5.1).
 
 import numpy as np
 
-from ..scene import Camera, Scene
+from ..scene import Camera, MeasuredReflectance, Scene
 from ._build import _Points
 from ._embree import RayCaster, pixel_centre_hits, primary_hits
 from ._matrix import TransportMatrix
@@ -72,9 +72,14 @@ class DistantLightRows:
     of radiance `s / Omega_j` gives nearly the same pixels (exactly, as the cell shrinks). Shadow
     rays are cast only from points where some other surface, or a surface that can shadow itself,
     could be in the way (none for an object alone that is convex and closed).
+
+    With a `reflectance` (`MeasuredReflectance`: a real surface's BRDF measured under known lights),
+    `rho/pi` is its `b(n.w, n.h, n.v)` at each footprint sample, seen from the camera: every observed
+    surface is taken to be that material.
     """
 
-    def __init__(self, scene: Scene, camera: Camera, T: TransportMatrix, pixel_samples: int | None = None):
+    def __init__(self, scene: Scene, camera: Camera, T: TransportMatrix, pixel_samples: int | None = None,
+                 reflectance: MeasuredReflectance | None = None):
         if (camera.height, camera.width) != tuple(T.image_shape):
             raise ValueError(f"the camera's image {(camera.height, camera.width)} is not the transport matrix's "
                              f"{tuple(T.image_shape)}")
@@ -94,6 +99,7 @@ class DistantLightRows:
         # shadow rays that may meet something: another surface, or the point's own if it shadows itself
         self.traced = (self.self_shadowing[self.points.surface] | (len(scene) > 1)) & (self.points.surface >= 0)
         self.any_traced = bool(np.any(self.traced))
+        self.reflectance = reflectance
 
     def __call__(self, directions) -> np.ndarray:
         return self.with_gradient(directions, gradient=False)[0]
@@ -111,9 +117,35 @@ class DistantLightRows:
             # a surface that cannot shadow itself does not (its smooth normals can point past a facet)
             blocked = (hit >= 0) & ((hit != pts.surface[lit[0]]) | self.self_shadowing[hit])
             cos[lit[0][blocked], lit[1][blocked]] = 0.0
+        if self.reflectance is not None:
+            return self._measured(w, cos, gradient)
         weight = (pts.albedo / np.pi)[:, None]
         rows = (weight * cos).reshape(*self.shape, -1).mean(axis=1)
         if not gradient:
             return rows, None
         grad = ((weight * (cos > 0))[:, :, None] * pts.normal[:, None, :]).reshape(*self.shape, len(w), 3).mean(axis=1)
         return rows, grad
+
+    def _measured(self, w, cos, gradient: bool):
+        """`with_gradient` under the measured reflectance: `b(n.w, n.h, n.v) cos` (cos already zero where
+        shadowed), with `n.h = (n.w + n.v) / L`, `L = |v + w| = sqrt(2 + 2 v.w)`; its gradient
+        `cos (b_w n + b_h dh) + b n [cos > 0]`, `dh = (n - (n.h) (v + w) / L) / L`."""
+        pts = self.points
+        cos_w = pts.normal @ w.T  # (M, K)
+        cos_v = np.sum(pts.normal * pts.view, axis=1)[:, None]
+        length = np.sqrt(np.maximum(2 + 2 * (pts.view @ w.T), 1e-24))
+        cos_h = (cos_w + cos_v) / length
+        seen = (pts.surface >= 0)[:, None] & (cos_v > 0)
+        if gradient:
+            b, b_w, b_h = self.reflectance(cos_w, cos_h, cos_v, gradient=True)
+        else:
+            b = self.reflectance(cos_w, cos_h, cos_v)
+        b = np.where(seen, b, 0.0)
+        rows = (b * cos).reshape(*self.shape, -1).mean(axis=1)
+        if not gradient:
+            return rows, None
+        lit = (cos > 0) & seen
+        along_n = np.where(lit, cos * b_w + b + cos * b_h / length, 0.0)  # (M, K): the part along n
+        along_vw = np.where(lit, -cos * b_h * cos_h / length**2, 0.0)  # ... and along v + w
+        grad = along_n[:, :, None] * pts.normal[:, None, :] + along_vw[:, :, None] * (pts.view[:, None, :] + w[None])
+        return rows, grad.reshape(*self.shape, len(w), 3).mean(axis=1)
