@@ -89,8 +89,9 @@ def measure_reflectance(mask, photos, directions, intensities=None, saturated=No
     camera) of power `intensities (M[, C])` (default 1), `saturated (M, H, W)` pixels left out.
 
     The normals are the fitted disc's (`fit_sphere`) at the pixel centres inside 0.98 of its radius
-    (a pixel on the silhouette mixes the ball and what is behind it); the view is the far camera's,
-    +z. The photos' channels are divided by the lights' and averaged: one grey table, whose scale
+    (a pixel on the silhouette mixes the ball and what is behind it), lit at `n.w` above two pixels'
+    worth of normal (`2 / radius`: a pixel across the terminator is no sample of the BRDF); the view is
+    the far camera's, +z. The photos' channels are divided by the lights' and averaged: one grey table, whose scale
     is the ball's albedo over the lights' units."""
     mask = _check_mask(mask)
     photos = np.asarray(photos, np.float64)
@@ -120,7 +121,8 @@ def measure_reflectance(mask, photos, directions, intensities=None, saturated=No
             raise ValueError(f"saturated must be (M, H, W) = {(M,) + mask.shape}, got {saturated.shape}")
         used = ~saturated[:, pixels[:, 0], pixels[:, 1]]
     view = np.broadcast_to([0.0, 0.0, 1.0], normals.shape)
-    return MeasuredReflectance.measure(normals, view, values, directions, used, edges)
+    radius = fit_sphere(mask)[2]  # a pixel spans 1/radius of the normal's x and y: leave out n.w below two
+    return MeasuredReflectance.measure(normals, view, values, directions, used, edges, min_cosine=2.0 / radius)
 
 
 def _check_mask(mask) -> np.ndarray:

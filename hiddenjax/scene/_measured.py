@@ -61,10 +61,12 @@ class MeasuredReflectance:
         self.centres = tuple((e[1:] + e[:-1]) / 2 for e in self.edges)
 
     @classmethod
-    def measure(cls, normal, view, values, directions, used=None, edges=DEFAULT_EDGES) -> "MeasuredReflectance":
+    def measure(cls, normal, view, values, directions, used=None, edges=DEFAULT_EDGES,
+                min_cosine: float = 0.0) -> "MeasuredReflectance":
         """From `values (M, P)`: `P` surface points of normals `normal (P, 3)` seen from `view (P, 3)` (unit,
         towards the camera) under `M` distant lights of unit power from `directions (M, 3)`; `used (M, P)`
-        bool leaves samples out (saturated pixels)."""
+        bool leaves samples out (saturated pixels), and so does `n.w < min_cosine` (a pixel whose footprint
+        straddles the terminator is lit where its centre is barely: its `y / c` is no BRDF)."""
         normal, view = np.asarray(normal, np.float64), np.asarray(view, np.float64)
         values, directions = np.asarray(values, np.float64), np.asarray(directions, np.float64)
         if normal.ndim != 2 or normal.shape[1] != 3 or view.shape != normal.shape:
@@ -81,7 +83,7 @@ class MeasuredReflectance:
         numerator, denominator, counts = np.zeros(shape), np.zeros(shape), np.zeros(shape, np.int64)
         for w, y, ok in zip(directions, values, used):
             cosines = half_cosines(normal, w[None], view)
-            ok = ok & (cosines[0] > 0)
+            ok = ok & (cosines[0] > max(min_cosine, 0.0))
             index = tuple(np.clip(np.searchsorted(e, c[ok], side="right") - 1, 0, len(e) - 2)
                           for e, c in zip(edges, cosines))
             c = cosines[0][ok]
