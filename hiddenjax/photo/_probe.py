@@ -71,15 +71,15 @@ def fit_sphere(mask) -> tuple[float, float, float]:
     return r0, c0, radius
 
 
-def sphere_normals(mask, inside: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """`(pixels (P, 2) row, col, normals (P, 3))` of the mask's pixels whose centres lie within `inside` of
+def sphere_normals(mask, inside: float = 1.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """`(pixels (P, 2) row, col, normals (P, 3), radius)` of the mask's pixels whose centres lie within `inside` of
     the fitted disc's radius (`fit_sphere`), in the probe's frame (x right, y up, z towards the far camera)."""
     row, col, radius = fit_sphere(mask)
     rows, cols = np.nonzero(_check_mask(mask))
     x, y = (cols + 0.5 - col) / radius, -(rows + 0.5 - row) / radius
     keep = x**2 + y**2 < inside**2
     normals = np.column_stack([x, y, np.sqrt(np.maximum(0.0, 1 - x**2 - y**2))])[keep]
-    return np.column_stack([rows, cols])[keep], normals
+    return np.column_stack([rows, cols])[keep], normals, radius
 
 
 def measure_reflectance(mask, photos, directions, intensities=None, saturated=None,
@@ -112,7 +112,7 @@ def measure_reflectance(mask, photos, directions, intensities=None, saturated=No
             raise ValueError(f"intensities must be positive, one per photo (M,) or per photo and channel (M, C); got "
                              f"shape {np.shape(intensities)}")
         grey = (photos / e[:, None, None, :]).mean(axis=-1) if photos.ndim == 4 else photos / e[:, :1, None]
-    pixels, normals = sphere_normals(mask, inside=0.98)
+    pixels, normals, radius = sphere_normals(mask, inside=0.98)
     values = grey[:, pixels[:, 0], pixels[:, 1]]
     used = np.ones(values.shape, bool)
     if saturated is not None:
@@ -121,7 +121,7 @@ def measure_reflectance(mask, photos, directions, intensities=None, saturated=No
             raise ValueError(f"saturated must be (M, H, W) = {(M,) + mask.shape}, got {saturated.shape}")
         used = ~saturated[:, pixels[:, 0], pixels[:, 1]]
     view = np.broadcast_to([0.0, 0.0, 1.0], normals.shape)
-    radius = fit_sphere(mask)[2]  # a pixel spans 1/radius of the normal's x and y: leave out n.w below two
+    # a pixel spans 1/radius of the normal's x and y: leave out n.w below two pixels' worth
     return MeasuredReflectance.measure(normals, view, values, directions, used, edges, min_cosine=2.0 / radius)
 
 
