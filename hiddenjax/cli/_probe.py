@@ -35,6 +35,8 @@ def add_parsers(sub) -> None:
                    help=f"the object is averaged down to at most this many pixels across "
                         f"(default {DEFAULT_MAX_SIZE})")
     p.add_argument("--lights", type=int, default=4, help="the most lights reported per photo (default 4)")
+    p.add_argument("--matte", action="store_true", help="keep the diffuse model: fit no highlight (by default one is "
+                   "fitted with the lights and kept where it explains the photo far better)")
     p.add_argument("--reflectance", metavar="NPZ", help="the object's measured BRDF (from --measure-reflectance): "
                                                          "the lights are refined with it instead of a diffuse model")
     p.add_argument("--measure-reflectance", metavar="LIGHTS", help="instead of solving: the photos are of a sphere "
@@ -81,7 +83,7 @@ def probe(args) -> dict:
     results, written = [], []
     for g, capture in zip(groups, captures):
         t1 = time.perf_counter()
-        found = view.solve(capture.radiance, capture.saturated, max_lights=args.lights)
+        found = view.solve(capture.radiance, capture.saturated, max_lights=args.lights, gloss=not args.matte)
         seconds = time.perf_counter() - t1
         folder = out if len(groups) == 1 else out / Path(g[0]).stem
         results.append((folder, found, seconds, g))
@@ -92,10 +94,13 @@ def probe(args) -> dict:
         lights = found.lights.to_json()
         lights = {"frame": "camera: x right, y up, z towards the camera",
                   "lights": [{"direction_camera": light["direction"], "power": light["power"]}
-                             for light in lights["lights"]]}
+                             for light in lights["lights"]],
+                  "highlight": None if found.lobe is None else {
+                      "model": "GGX lobe over a diffuse base: b = (1 + weight D(n.h)) / pi, D(1) = 1",
+                      "weight": found.lobe.weight, "roughness": found.lobe.roughness}}
         io.write_text(folder / "lights.json", json.dumps(lights, indent=2))
         written.append(dict(photos=[str(p) for p in g], folder=str(folder), seconds=seconds,
-                            saturated_pixels=found.saturated, lights=lights["lights"]))
+                            saturated_pixels=found.saturated, lights=lights["lights"], highlight=lights["highlight"]))
     summary = dict(build_seconds=build, factor=view.factor, pixels=int(view.T.shape[0]),
                    grid=list(args.grid), photos=written)
     io.write_text(out / "results.json", json.dumps(summary, indent=2))

@@ -16,6 +16,7 @@ from ._grid import EnvGrid as EnvGrid
 from ._grid import direction as direction
 from ._grid import direction_to_angles as direction_to_angles
 from ._grid import rotate_azimuth as rotate_azimuth
+from ._lobe import SpecularLobe as SpecularLobe
 from ._measured import MeasuredReflectance as MeasuredReflectance
 from ._setups import Setup as Setup
 from ._setups import box_on_floor as box_on_floor

@@ -23,6 +23,7 @@ from ._illumination import relative_smooth as relative_smooth
 from ._solve import solve_illumination as solve_illumination
 from ._lights import Lights as Lights
 from ._lights import dominant_lights as dominant_lights
+from ._lights import refine_glossy_lights as refine_glossy_lights
 from ._lights import refine_lights as refine_lights
 from ._matrix_free import MatrixFree as MatrixFree
 from ._matrix_free import solve_matrix_free as solve_matrix_free

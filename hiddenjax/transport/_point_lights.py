@@ -8,9 +8,11 @@ solid angle) from the direction `w` gives `rho/pi * s * max(0, n.w) * V(x, w)`: 
 map cell `j` of radiance `s / Omega_j` as the cell shrinks around `w` (eq. 5.1).
 """
 
+import copy
+
 import numpy as np
 
-from ..scene import Camera, MeasuredReflectance, Scene
+from ..scene import Camera, MeasuredReflectance, Scene, SpecularLobe
 from ._build import _Points
 from ._embree import RayCaster, pixel_centre_hits, primary_hits
 from ._matrix import TransportMatrix
@@ -73,13 +75,13 @@ class DistantLightRows:
     rays are cast only from points where some other surface, or a surface that can shadow itself,
     could be in the way (none for an object alone that is convex and closed).
 
-    With a `reflectance` (`MeasuredReflectance`: a real surface's BRDF measured under known lights),
-    `rho/pi` is its `b(n.w, n.h, n.v)` at each footprint sample, seen from the camera: every observed
-    surface is taken to be that material.
+    With a `reflectance` (`MeasuredReflectance`: a real surface's BRDF measured under known lights;
+    `SpecularLobe`: a diffuse base and a GGX highlight), `rho/pi` is its `b(n.w, n.h, n.v)` at each
+    footprint sample, seen from the camera: every observed surface is taken to be that material.
     """
 
     def __init__(self, scene: Scene, camera: Camera, T: TransportMatrix, pixel_samples: int | None = None,
-                 reflectance: MeasuredReflectance | None = None):
+                 reflectance: MeasuredReflectance | SpecularLobe | None = None):
         if (camera.height, camera.width) != tuple(T.image_shape):
             raise ValueError(f"the camera's image {(camera.height, camera.width)} is not the transport matrix's "
                              f"{tuple(T.image_shape)}")
@@ -104,9 +106,26 @@ class DistantLightRows:
     def __call__(self, directions) -> np.ndarray:
         return self.with_gradient(directions, gradient=False)[0]
 
-    def with_gradient(self, directions, gradient: bool = True):
-        """`(rows (P, K), d rows / d w (P, K, 3) or None)` for unit directions `w (K, 3)`: the gradient
-        `mean_s rho/pi * n_s * [n_s.w > 0] V(x_s, w)` (visibility is piecewise constant in `w`)."""
+    def with_reflectance(self, reflectance: MeasuredReflectance | SpecularLobe | None) -> "DistantLightRows":
+        """The same footprints and shadow rays under another reflectance (nothing is traced again)."""
+        other = copy.copy(self)
+        other.reflectance = reflectance
+        return other
+
+    def mirror_directions(self) -> np.ndarray:
+        """`(P, 3)` unit: each pixel's view reflected about its normal, `2 (n.v) n - v` with the footprint's mean
+        normal and view: the direction of a distant light whose mirror highlight the pixel would show."""
+        pts = self.points
+        seen = (pts.surface >= 0)[:, None]
+        n = (pts.normal * seen).reshape(*self.shape, 3).mean(axis=1)
+        v = (pts.view * seen).reshape(*self.shape, 3).mean(axis=1)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+        w = 2 * np.sum(n * v, axis=1, keepdims=True) * n - v
+        return w / np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-12)
+
+    def _shaded(self, directions):
+        """`(w (K, 3) unit, max(0, n.w) V(x, w) (M, K))` at the footprint samples."""
         w = np.atleast_2d(np.asarray(directions, dtype=np.float64))
         w = w / np.linalg.norm(w, axis=1, keepdims=True)
         pts = self.points
@@ -117,6 +136,13 @@ class DistantLightRows:
             # a surface that cannot shadow itself does not (its smooth normals can point past a facet)
             blocked = (hit >= 0) & ((hit != pts.surface[lit[0]]) | self.self_shadowing[hit])
             cos[lit[0][blocked], lit[1][blocked]] = 0.0
+        return w, cos
+
+    def with_gradient(self, directions, gradient: bool = True):
+        """`(rows (P, K), d rows / d w (P, K, 3) or None)` for unit directions `w (K, 3)`: the gradient
+        `mean_s rho/pi * n_s * [n_s.w > 0] V(x_s, w)` (visibility is piecewise constant in `w`)."""
+        w, cos = self._shaded(directions)
+        pts = self.points
         if self.reflectance is not None:
             return self._measured(w, cos, gradient)
         weight = (pts.albedo / np.pi)[:, None]
@@ -126,16 +152,31 @@ class DistantLightRows:
         grad = ((weight * (cos > 0))[:, :, None] * pts.normal[:, None, :]).reshape(*self.shape, len(w), 3).mean(axis=1)
         return rows, grad
 
-    def _measured(self, w, cos, gradient: bool):
-        """`with_gradient` under the measured reflectance: `b(n.w, n.h, n.v) cos` (cos already zero where
-        shadowed), with `n.h = (n.w + n.v) / L`, `L = |v + w| = sqrt(2 + 2 v.w)`; its gradient
-        `cos (b_w n + b_h dh) + b n [cos > 0]`, `dh = (n - (n.h) (v + w) / L) / L`."""
+    def with_parameter_gradient(self, directions):
+        """`(rows (P, K), d rows / d w (P, K, 3), d rows / d (log weight, log roughness) (P, K, 2))` under a
+        `SpecularLobe` reflectance: the last the footprint mean of `db/dz max(0, n.w) V(x, w)`."""
+        if not isinstance(self.reflectance, SpecularLobe):
+            raise ValueError(f"only a SpecularLobe's parameters have a gradient here, not {type(self.reflectance).__name__}")
+        w, cos = self._shaded(directions)
+        return self._measured(w, cos, gradient=True, parameters=True)
+
+    def _cosines(self, w):
+        """`(n.w, n.h, n.v, seen)` at the footprint samples, `(M, K)` each (`n.v` and `seen` `(M, 1)`), with
+        `n.h = (n.w + n.v) / |v + w|`; `seen`: a sample on a surface facing the camera."""
         pts = self.points
         cos_w = pts.normal @ w.T  # (M, K)
         cos_v = np.sum(pts.normal * pts.view, axis=1)[:, None]
         length = np.sqrt(np.maximum(2 + 2 * (pts.view @ w.T), 1e-24))
         cos_h = (cos_w + cos_v) / length
-        seen = (pts.surface >= 0)[:, None] & (cos_v > 0)
+        return cos_w, cos_h, cos_v, (pts.surface >= 0)[:, None] & (cos_v > 0)
+
+    def _measured(self, w, cos, gradient: bool, parameters: bool = False):
+        """`with_gradient` under the reflectance: `b(n.w, n.h, n.v) cos` (cos already zero where
+        shadowed), with `n.h = (n.w + n.v) / L`, `L = |v + w| = sqrt(2 + 2 v.w)`; its gradient
+        `cos (b_w n + b_h dh) + b n [cos > 0]`, `dh = (n - (n.h) (v + w) / L) / L`."""
+        pts = self.points
+        cos_w, cos_h, cos_v, seen = self._cosines(w)
+        length = np.sqrt(np.maximum(2 + 2 * (pts.view @ w.T), 1e-24))
         if gradient:
             b, b_w, b_h = self.reflectance(cos_w, cos_h, cos_v, gradient=True)
         else:
@@ -148,4 +189,8 @@ class DistantLightRows:
         along_n = np.where(lit, cos * b_w + b + cos * b_h / length, 0.0)  # (M, K): the part along n
         along_vw = np.where(lit, -cos * b_h * cos_h / length**2, 0.0)  # ... and along v + w
         grad = along_n[:, :, None] * pts.normal[:, None, :] + along_vw[:, :, None] * (pts.view[:, None, :] + w[None])
-        return rows, grad.reshape(*self.shape, len(w), 3).mean(axis=1)
+        grad = grad.reshape(*self.shape, len(w), 3).mean(axis=1)
+        if not parameters:
+            return rows, grad
+        db = self.reflectance.parameter_gradient(cos_w, cos_h, cos_v) * (seen * cos)[:, :, None]
+        return rows, grad, db.reshape(*self.shape, len(w), 2).mean(axis=1)
