@@ -1,13 +1,14 @@
 """Real photographs of an object: `probe` on the DiLiGenT ball, one light and two at once.
 
-    python benchmarks/bench_real.py [--quick] [--out DIR] [--diligent DIR] [--pairs N]
+    python benchmarks/bench_real.py [--quick] [--out DIR] [--diligent DIR] [--pairs N] [--measured-pairs N]
 
 `--diligent DIR`: the DiLiGenT "ball" (Shi et al., CVPR 2016; research use, not shipped): a real,
 somewhat shiny sphere photographed 96 times, each under one calibrated distant light (16-bit linear
 PNGs `001.png` .. `096.png`, `mask.png`, `light_directions.txt` in the camera frame x right, y up,
 z towards the camera, `filenames.txt`). Get it from the DiLiGenT site (`pmsData/ballPNG`) and crop
 nothing: the probe fits the sphere to the mask. Each photo alone goes through `hj.photo.Probe`
-(the build once, then each photo's map, its dominant lights and their refinement), and the figure
+(the build once, then each photo's map, its dominant lights and their refinement, the ball's
+highlight fitted with them where it explains the photo far better: the probe's default), and the figure
 is the angle between the brightest light found and the calibrated one; then `--pairs` random
 pairs of photos whose lights are at least 30 degrees apart are summed (the photos are linear: two
 lights at once) and both lights must be found. The baseline in the same run is a plain Lambertian
@@ -22,7 +23,8 @@ about two lights on this ball at all.
 Then the same photos through the probe with the ball's BRDF measured from its own other photos
 (`hj.photo.measure_reflectance` with the calibrated directions and intensities; `probe
 --measure-reflectance`), never from the photos being solved: each photo alone with the table of
-the three of four folds it is not in, each pair with the table of the other 94 photos.
+the three of four folds it is not in, each of the first `--measured-pairs` pairs (default all) with
+the table of the other 94 photos.
 
 Without `--diligent` (and in `--quick`), the same measurements run on closed-form photos of a
 Lambertian sphere (analytic normals, 4x4 samples per pixel, 0.5% noise) so the script always
@@ -139,6 +141,7 @@ def main():
     parser.add_argument("--out", type=Path, default=Path("bench_real_out"))
     parser.add_argument("--diligent", type=Path, help="the DiLiGenT ball folder (research use; not shipped)")
     parser.add_argument("--pairs", type=int, default=50, help="random pairs of photos summed (default 50)")
+    parser.add_argument("--measured-pairs", type=int, help="of those, the first N with the measured BRDF (default all)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     if args.diligent is not None and not (args.diligent / "light_directions.txt").is_file():
@@ -154,8 +157,8 @@ def main():
     probe = hj.photo.Probe.sphere(mask)
     build = time.perf_counter() - t0
     table = Table()
-    table.append(("photo", "probe (deg)", "Lambertian fit (deg)", "lights found", "seconds"))
-    single, baseline, seconds, maps = [], [], [], []
+    table.append(("photo", "probe (deg)", "Lambertian fit (deg)", "lights found", "highlight", "seconds"))
+    single, baseline, seconds, maps, highlights = [], [], [], [], []
     for k in singles:
         t1 = time.perf_counter()
         found = probe.solve(photos[k], saturated[k])
@@ -163,8 +166,9 @@ def main():
         single.append(angle(found.lights.directions[0], lights[k]))
         baseline.append(angle(lambertian_fit(mask, photos[k], saturated[k]), lights[k]))
         maps.append((k, found))
+        highlights.append(found.lobe is not None)
         table.append((f"{k + 1:03d}", f"{single[-1]:.2f}", f"{baseline[-1]:.2f}", str(len(found.lights)),
-                      f"{seconds[-1]:.2f}"))
+                      str(found.lobe or "-"), f"{seconds[-1]:.2f}"))
 
     rng = np.random.default_rng(0)
     pair_rows, both, ceiling = [], [], []
@@ -172,8 +176,8 @@ def main():
         a, b = rng.choice(len(photos), 2, replace=False)
         if angle(lights[a], lights[b]) < 30:
             continue
-        found = probe.solve(photos[a] + photos[b], saturated[a] | saturated[b]).lights
-        d = np.asarray(found.directions)
+        result = probe.solve(photos[a] + photos[b], saturated[a] | saturated[b])
+        d = np.asarray(result.lights.directions)
         worst = worse_of_two(d, lights[[a, b]])
         powers = [np.percentile(photos[k].mean(axis=-1)[mask], 95) for k in (a, b)]
         best = worse_of_two(two_light_ceiling(mask, photos[a] + photos[b], saturated[a] | saturated[b],
@@ -181,25 +185,30 @@ def main():
         both.append(worst)
         ceiling.append(best)
         pair_rows.append(dict(photos=[int(a) + 1, int(b) + 1], separation=angle(lights[a], lights[b]),
-                              lights_found=len(d), worse_error=worst, ceiling_worse_error=best))
+                              lights_found=len(d), worse_error=worst, ceiling_worse_error=best,
+                              highlight=None if result.lobe is None else [result.lobe.weight, result.lobe.roughness]))
         print(f"pair {a + 1:03d}+{b + 1:03d} ({angle(lights[a], lights[b]):.0f} deg apart): {len(d)} lights, "
-              f"the worse of the two {worst:.2f} deg (Lambertian fit from the truth: {best:.2f})", flush=True)
+              f"the worse of the two {worst:.2f} deg (Lambertian fit from the truth: {best:.2f}); "
+              f"{result.lobe or 'diffuse'}", flush=True)
     table.print_all()
     measured = measured_reflectance(probe, mask, photos, saturated, lights, light_powers,
-                                    [r["photos"] for r in pair_rows][: 2 if args.quick else None], 4 if args.quick else len(photos))
+                                    [r["photos"] for r in pair_rows][: 2 if args.quick else args.measured_pairs],
+                                    4 if args.quick else len(photos))
     within = float(np.mean(np.array(both) <= 3.0))
     ceiling_within = float(np.mean(np.array(ceiling) <= 3.0))
     summary = dict(
         source=source, photos=len(singles), build_seconds=build, seconds_per_photo=float(np.median(seconds[1:] or seconds)),
         first_photo_seconds=build + seconds[0], pixels=int(probe.T.shape[0]), factor=probe.factor,
-        single=dict(median=float(np.median(single)), max=float(np.max(single)), p90=float(np.percentile(single, 90))),
+        single=dict(median=float(np.median(single)), max=float(np.max(single)), p90=float(np.percentile(single, 90)),
+                    highlight_kept=int(np.sum(highlights))),
         lambertian_fit=dict(median=float(np.median(baseline)), max=float(np.max(baseline))),
         pairs=dict(count=pairs, within_3deg=within, median_worse=float(np.median(both)),
                    ceiling_within_3deg=ceiling_within, ceiling_median_worse=float(np.median(ceiling)), rows=pair_rows),
         singles=[dict(photo=int(k) + 1, error=e, baseline=b) for k, e, b in zip(singles, single, baseline)],
         measured=measured,
     )
-    print(f"\nprobe, one light: median {summary['single']['median']:.2f} deg, max {summary['single']['max']:.2f} "
+    print(f"\nprobe, one light: median {summary['single']['median']:.2f} deg, max {summary['single']['max']:.2f}, a "
+          f"highlight fitted on {summary['single']['highlight_kept']} of {len(singles)} "
           f"(Lambertian fit: {summary['lambertian_fit']['median']:.2f} / {summary['lambertian_fit']['max']:.2f}); "
           f"two lights: both within 3 deg in {within:.0%} of {pairs} pairs (the Lambertian fit started at the "
           f"truth: {ceiling_within:.0%}, the worse {np.median(ceiling):.2f} deg in the median pair); build {build:.1f} s, "
@@ -212,6 +221,8 @@ def main():
           f"{m['seconds_per_photo']:.2f} s per photo")
     (args.out / "results.json").write_text(json.dumps(summary, indent=2))
     picture(args.out / "probe.png", photos, maps, lights, probe)
+    highlight_picture(args.out / "probe_highlight.png", photos, saturated, lights, probe,
+                      [r["photos"] for r in pair_rows][:3])
 
 
 def measured_reflectance(probe, mask, photos, saturated, lights, powers, pairs, singles: int) -> dict:
@@ -282,6 +293,49 @@ def picture(path, photos, maps, lights, probe):
             ax.set_yticks([])
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+def highlight_picture(path, photos, saturated, lights, probe, pairs):
+    """For pairs of photos summed: the photo, the diffuse model's lights rendered, the lights with the
+    fitted highlight rendered, and that fit's residual (all at the highlight fit's size)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(pairs), 4, figsize=(12.0, 3.1 * len(pairs)), squeeze=False)
+    T, rows, f = probe.light_T, probe.light_rows, probe.light_factor
+    H, W = T.image_shape
+
+    def block(image, reduce):  # the photo at the highlight fit's size (f x f blocks)
+        return reduce(image[: H * f, : W * f].reshape(H, f, W, f, *image.shape[2:]), axis=(1, 3))
+
+    for r, (a, b) in enumerate(pairs):
+        a, b = a - 1, b - 1
+        photo, out = photos[a] + photos[b], saturated[a] | saturated[b]
+        image = block(photo, np.mean).mean(axis=-1)
+        scale = max(np.percentile(image, 99.5), 1e-12)
+        panels = [(image, "photo %03d+%03d" % (a + 1, b + 1))]
+        for gloss in (False, True):
+            found = probe.solve(photo, out, gloss=gloss)
+            d = np.asarray(found.lights.directions)
+            render = rows.with_reflectance(found.lobe)(d) @ np.asarray(found.lights.power).reshape(len(d), -1)
+            worse = worse_of_two(d, lights[[a, b]])
+            label = "diffuse model" if found.lobe is None else f"highlight: s {found.lobe.weight:.1f}, a {found.lobe.roughness:.3f}"
+            panels.append((np.asarray(T.rows_to_image(render.mean(axis=1))), f"{label}\nthe worse light {worse:.2f} deg"))
+        residual = image - panels[-1][0]
+        for c, (im, title) in enumerate(panels):
+            axes[r, c].imshow(im / scale, cmap="gray", vmin=0, vmax=1)
+            axes[r, c].set_title(title, fontsize=8)
+        limit = 0.2 * scale
+        seen = T.rows_to_image(np.ones(T.shape[0])) > 0
+        axes[r, 3].imshow(np.where(block(out, np.any) | ~seen, np.nan, residual), cmap="RdBu_r", vmin=-limit, vmax=limit)
+        axes[r, 3].set_title("photo - highlight fit, +-20% of the peak\n(blank: saturated, or not fitted)", fontsize=8)
+        for ax in axes[r]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
 
 
 if __name__ == "__main__":
