@@ -24,7 +24,8 @@ lobe of unknown weight and roughness, `SpecularLobe`, started at the photo's hig
 photo averaged down to at most `light_max_size` pixels across (a sharp lobe covers a few pixels:
 on the DiLiGenT ball's summed pairs, 80% of pairs had both lights within 3 degrees at 72 pixels
 across, 96% at its full 142), and that answer is kept where its misfit is `GLOSS_GAIN` times
-smaller than the diffuse one's (a matte ball keeps the diffuse answer). With the object's BRDF measured from
+smaller than the diffuse one's (a matte ball keeps the diffuse answer; where no pixel stands out
+as a highlight, the fit is not even tried). With the object's BRDF measured from
 photos of it under known lights (`measure_reflectance`, `MeasuredReflectance`), the lights are
 refined with it instead: first with its lobe blurred by `COARSE_LOBE` (fewer local minima), then
 with the sharp table. A light is added where the map showed none (a light one of its peaks merged
@@ -275,8 +276,8 @@ class Probe:
                 fine = _shrink(photo, self.light_factor, np.mean)
                 fine_out = _shrink(saturated, self.light_factor, any)
                 glossy, fitted = refine_glossy_lights(self.light_T, self.scene, self.light_camera, fine, None, found,
-                                                      mask=~fine_out, rows=self.light_rows)
-                if GLOSS_GAIN * self._misfit(fine, ~fine_out, glossy, fitted) <= self._misfit(fine, ~fine_out, found):
+                                                      mask=~fine_out, rows=self.light_rows, require_highlight=True)
+                if fitted is not None and GLOSS_GAIN * self._misfit(fine, ~fine_out, glossy, fitted) <= self._misfit(fine, ~fine_out, found):
                     found, lobe = glossy, fitted
             return ProbeResult(np.asarray(solution.env), found, int(np.count_nonzero(observed)), lobe)
         else:  # (module docstring)

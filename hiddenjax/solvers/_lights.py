@@ -29,7 +29,8 @@ GGX lobe of unknown weight and roughness, shared by the lights): the same least 
 are poor starts; a highlight is a direct one: the pixels far brighter than diffuse lights explain,
 brightest first, each give the direction whose mirror reflection they show, `2 (n.v) n - v`
 (`DistantLightRows.mirror_directions`), and those starts (each `separation` apart) replace the
-map's. On the DiLiGenT ball's pairs of photos summed, from the map's peaks 70% of pairs had both
+map's. The brightest must stand `HIGHLIGHT_SIGMAS` robust deviations above the diffuse fit: a matte
+object whose few diffuse lights misfit it broadly (a sky) shows no highlight. On the DiLiGenT ball's pairs of photos summed, from the map's peaks 70% of pairs had both
 lights within 3 degrees, from the highlights 80% (at 72 pixels across) and 92% (142, its full size).
 """
 
@@ -164,13 +165,15 @@ def refine_lights(T: TransportMatrix, scene, camera, image, env, lights: Lights,
 def refine_glossy_lights(T: TransportMatrix, scene, camera, image, env, lights: Lights, mask=None,
                          rows: DistantLightRows | None = None, lobe: SpecularLobe = START_LOBE,
                          floor: float = DEFAULT_FLOOR, grow: int = 0, separation: float = DEFAULT_SEPARATION,
-                         tolerance: float = DROP_TOLERANCE) -> tuple[Lights, SpecularLobe]:
+                         tolerance: float = DROP_TOLERANCE,
+                         require_highlight: bool = False) -> tuple[Lights, SpecularLobe | None]:
     """`refine_lights` with a shiny surface (module docstring): the lights and the surface's `SpecularLobe` (a
     diffuse base and a GGX highlight, started at `lobe`: broad, so that a highlight far from a start still pulls
     it in) fitted together to the photo; `(lights, the fitted lobe)`. The starts are the photo's highlights
     over diffuse `lights` (`refine_lights`' answer, or the map's), or those lights where no pixel stands out.
-    No pixel is left out as a highlight: the lobe models them. The other arguments are `refine_lights`'s
-    (`rows` of any reflectance: the lobe replaces it)."""
+    No pixel is left out as a highlight: the lobe models them. With `require_highlight`, a photo where no pixel
+    stands out as one (`HIGHLIGHT_SIGMAS`) is not fitted: `(lights, None)`. The other arguments are
+    `refine_lights`'s (`rows` of any reflectance: the lobe replaces it)."""
     if not isinstance(lobe, SpecularLobe):
         raise ValueError(f"lobe must be a SpecularLobe (its start), got {type(lobe).__name__}")
     rows = DistantLightRows(scene, camera, T) if rows is None else rows
@@ -180,6 +183,8 @@ def refine_glossy_lights(T: TransportMatrix, scene, camera, image, env, lights: 
     if len(seeds):  # the highlights are far better starts than the map's peaks (module docstring)
         cells = np.zeros((len(seeds), np.asarray(lights.cells).shape[1]), bool)
         lights = Lights(seeds, np.ones(len(seeds)), cells)
+    elif require_highlight:
+        return lights, None
     return _refine(T, scene, camera, image, env, lights, mask, rows, floor, False, grow, separation, tolerance,
                    False, lobe)
 
@@ -196,7 +201,7 @@ def _highlight_seeds(rows, keep, grey, directions, separation: float, count: int
     """Up to `count` light directions `(k, 3)` read off the photo's highlights: the mirror directions
     (`DistantLightRows.mirror_directions`) of the kept pixels that diffuse lights from `directions` (their powers
     fitted, non-negative) leave brighter than `_fit`'s outlier bound, brightest excess first, each
-    `separation` from those before."""
+    `separation` from those before; none unless the brightest stands `HIGHLIGHT_SIGMAS` robust deviations out."""
     R = rows(np.asarray(directions, np.float64))[keep]
     power, _ = scipy.optimize.nnls(R, grey[keep])
     excess = grey[keep] - R @ power
@@ -204,6 +209,8 @@ def _highlight_seeds(rows, keep, grey, directions, separation: float, count: int
     bound = np.median(excess) + max(OUTLIER_SIGMAS * spread, OUTLIER_FLOOR * np.abs(grey[keep]).max())
     mirror = rows.mirror_directions()[keep]
     seeds = []
+    if excess.max(initial=-np.inf) < np.median(excess) + HIGHLIGHT_SIGMAS * spread:
+        return np.zeros((0, 3))  # no pixel stands out as a highlight: the misfit is the model's, not a lobe's
     for p in np.argsort(-excess):
         if excess[p] <= bound or len(seeds) == count:
             break
@@ -272,6 +279,8 @@ def _refine(T, scene, camera, image, env, lights, mask, rows, floor, background,
 GROW_CANDIDATES = 400  # directions over the sphere tried for a light the map did not show
 SPLIT = 0.6  # a light split in two starts them this fraction of `separation` either side of it
 SCREEN_EVALUATIONS = 10  # per light: the starts of a light more are compared after this many steps
+HIGHLIGHT_SIGMAS = 20.0  # a highlight stands this many robust deviations above a diffuse fit (the DiLiGenT ball:
+# 54-320; a matte ball under a sky, whose diffuse lights misfit it broadly: 6-8)
 LOBE_ROUGHNESS = 0.5  # the roughest lobe refine_glossy_lights fits: rougher is a second diffuse term, which trades
 LOBE_WEIGHTS = (1e-4, 1e3)  # ... power for weight without end; and the lobe's weights it may take
 FIT_TOLERANCE = 1e-7  # relative change of the residual and of the offsets (radians) and log-powers that ends a fit
