@@ -8,7 +8,8 @@ figures: the brightest light's angle to the panorama's brightest source, "the su
 moment of its pixels within 3 degrees of the brightest one; lebombo's is a sunny window) and the tone-mapped SSIM against the panorama of
 the map that the default prior solves from the probe's matrix (the probe's own map, under a weak
 prior, is only the lights' start). A ball sees only the half of the sky that faces the camera, so the map's
-other half is the prior's guess.
+other half is the prior's guess. Each sky also reports whether the probe fitted a highlight (it should not:
+the ball is matte) and the brightest light of the diffuse model alone (`gloss=False`).
 
     python examples/light_probe.py [--quick] [--out DIR]
 """
@@ -71,18 +72,23 @@ def main():
         probe = hj.photo.Probe.sphere(mask)
         found = probe.solve(photo)
         seconds = time.perf_counter() - t0
+        diffuse = probe.solve(photo, gloss=False)  # the diffuse model alone (probe --matte)
         sun = sun_direction(panorama)
         error = float(np.degrees(np.arccos(np.clip(np.asarray(found.lights.directions[0]) @ sun, -1, 1))))
+        matte = float(np.degrees(np.arccos(np.clip(np.asarray(diffuse.lights.directions[0]) @ sun, -1, 1))))
         truth = grid.downsample(panorama)
         env = np.asarray(hj.solve_illumination(probe.T, probe.averaged(photo)).env)
         ssim = float(hj.metrics.env_errors(env.mean(-1) if env.ndim == 3 else env,
                                            truth.mean(-1) if truth.ndim == 3 else truth, region="all")["ssim_tm"])
         facing = float(sun[2])
         rows.append(dict(sky=sky, sun_error_deg=error, sun_facing_camera=facing, ssim_tm_all=ssim,
-                         lights=len(found.lights), probe_seconds=seconds, render_seconds=render))
+                         lights=len(found.lights), probe_seconds=seconds, render_seconds=render,
+                         highlight=None if found.lobe is None else [found.lobe.weight, found.lobe.roughness],
+                         matte_sun_error_deg=matte))
         print(f"{sky}: the brightest light {error:.2f} deg from the sun (sun's z {facing:+.2f}: "
               f"{'facing' if facing > 0 else 'behind'} the camera's side), {len(found.lights)} light(s), map "
-              f"tone-mapped SSIM {ssim:.3f} (default prior); probe {seconds:.1f} s", flush=True)
+              f"tone-mapped SSIM {ssim:.3f} (default prior); probe {seconds:.1f} s; {found.lobe or 'no highlight'} "
+              f"(the diffuse model alone: {matte:.2f} deg)", flush=True)
         sheet += [(f"{sky}\nsun {error:.1f} deg off", photo), ("map, default prior\n", env), ("panorama on the grid\n", truth)]
     hj.io.contact_sheet(args.out / "light_probe.png", sheet, height=160, columns=3)
     (args.out / "results.json").write_text(json.dumps(dict(skies=rows, grid=[32, 64], quick=args.quick), indent=2))
