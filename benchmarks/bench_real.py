@@ -305,15 +305,10 @@ def highlight_picture(path, photos, saturated, lights, probe, pairs):
 
     fig, axes = plt.subplots(len(pairs), 4, figsize=(12.0, 3.1 * len(pairs)), squeeze=False)
     T, rows, f = probe.light_T, probe.light_rows, probe.light_factor
-    H, W = T.image_shape
-
-    def block(image, reduce):  # the photo at the highlight fit's size (f x f blocks)
-        return reduce(image[: H * f, : W * f].reshape(H, f, W, f, *image.shape[2:]), axis=(1, 3))
-
     for r, (a, b) in enumerate(pairs):
         a, b = a - 1, b - 1
         photo, out = photos[a] + photos[b], saturated[a] | saturated[b]
-        image = block(photo, np.mean).mean(axis=-1)
+        image = probe.averaged(photo, f).mean(axis=-1)  # the photo at the highlight fit's size
         scale = max(np.percentile(image, 99.5), 1e-12)
         panels = [(image, "photo %03d+%03d" % (a + 1, b + 1))]
         for gloss in (False, True):
@@ -329,7 +324,8 @@ def highlight_picture(path, photos, saturated, lights, probe, pairs):
             axes[r, c].set_title(title, fontsize=8)
         limit = 0.2 * scale
         seen = T.rows_to_image(np.ones(T.shape[0])) > 0
-        axes[r, 3].imshow(np.where(block(out, np.any) | ~seen, np.nan, residual), cmap="RdBu_r", vmin=-limit, vmax=limit)
+        blank = (probe.averaged(out, f) > 0) | ~seen  # a block with any saturated pixel, as the fit leaves out
+        axes[r, 3].imshow(np.where(blank, np.nan, residual), cmap="RdBu_r", vmin=-limit, vmax=limit)
         axes[r, 3].set_title("photo - highlight fit, +-20% of the peak\n(blank: saturated, or not fitted)", fontsize=8)
         for ax in axes[r]:
             ax.set_xticks([])

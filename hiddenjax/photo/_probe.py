@@ -247,9 +247,10 @@ class Probe:
         return cls(Scene([Surface(mesh, 1.0, smooth=True)]), view, _factor(across, max_size), _grid(grid), mask.shape,
                    reflectance=reflectance, light_factor=_factor(across, light_max_size))
 
-    def averaged(self, photo) -> np.ndarray:
-        """A photo of the view averaged down to `T`'s image (`factor` x `factor` blocks), as `solve` uses it."""
-        return _shrink(np.asarray(photo, dtype=np.float32), self.factor, np.mean)
+    def averaged(self, photo, factor: int | None = None) -> np.ndarray:
+        """A photo of the view averaged down to `T`'s image (`factor` x `factor` blocks), as `solve` uses it;
+        `factor=probe.light_factor` gives the image the highlight's fit sees (`light_T`'s)."""
+        return _shrink(np.asarray(photo, dtype=np.float32), self.factor if factor is None else factor, np.mean)
 
     def solve(self, photo, saturated=None, max_lights: int = 4, gloss: bool = True) -> ProbeResult:
         """The map and the lights of `photo (H, W[, C])` (linear) with its `saturated (H, W)` pixels left out;
@@ -273,12 +274,14 @@ class Probe:
                                   rows=self.rows)
             lobe = None
             if gloss:  # (module docstring)
-                fine = _shrink(photo, self.light_factor, np.mean)
+                fine = self.averaged(photo, self.light_factor)
                 fine_out = _shrink(saturated, self.light_factor, any)
                 glossy, fitted = refine_glossy_lights(self.light_T, self.scene, self.light_camera, fine, None, found,
                                                       mask=~fine_out, rows=self.light_rows, require_highlight=True)
-                if fitted is not None and GLOSS_GAIN * self._misfit(fine, ~fine_out, glossy, fitted) <= self._misfit(fine, ~fine_out, found):
-                    found, lobe = glossy, fitted
+                if fitted is not None:
+                    diffuse_misfit, glossy_misfit = self._misfits(fine, ~fine_out, (found, None), (glossy, fitted))
+                    if GLOSS_GAIN * glossy_misfit <= diffuse_misfit:
+                        found, lobe = glossy, fitted
             return ProbeResult(np.asarray(solution.env), found, int(np.count_nonzero(observed)), lobe)
         else:  # (module docstring)
             grow = min(1, max_lights - len(lights))  # one light the map merged with another
@@ -288,15 +291,17 @@ class Probe:
                                        rows=rows, grow=grow, tolerance=tolerance, highlights=False)
         return ProbeResult(np.asarray(solution.env), lights, int(np.count_nonzero(observed)))
 
-
-    def _misfit(self, image, mask, lights: Lights, lobe: SpecularLobe | None = None) -> float:
-        """The squared misfit of `lights` (under `lobe`, or the diffuse model) over the `mask`ed pixels of `image`
-        (the highlight's view, `light_factor`)."""
+    def _misfits(self, image, mask, *answers) -> list[float]:
+        """The squared misfit over the `mask`ed pixels of `image` (the highlight's view, `light_factor`) of each
+        `(lights, lobe)` of `answers` (`lobe` None: the diffuse model)."""
         T = self.light_T
         keep = T.image_to_rows(mask)
         y = T.image_to_rows(np.asarray(image, np.float64)).reshape(T.shape[0], -1)[keep]
-        R = self.light_rows.with_reflectance(lobe)(lights.directions)[keep]
-        return float(np.sum((y - R @ np.asarray(lights.power, np.float64).reshape(R.shape[1], -1)) ** 2))
+        misfits = []
+        for lights, lobe in answers:
+            R = self.light_rows.with_reflectance(lobe)(lights.directions)[keep]
+            misfits.append(float(np.sum((y - R @ np.asarray(lights.power, np.float64).reshape(R.shape[1], -1)) ** 2)))
+        return misfits
 
 
 def _grid(grid) -> EnvGrid:

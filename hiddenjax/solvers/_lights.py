@@ -30,8 +30,9 @@ are poor starts; a highlight is a direct one: the pixels far brighter than diffu
 brightest first, each give the direction whose mirror reflection they show, `2 (n.v) n - v`
 (`DistantLightRows.mirror_directions`), and those starts (each `separation` apart) replace the
 map's. The brightest must stand `HIGHLIGHT_SIGMAS` robust deviations above the diffuse fit: a matte
-object whose few diffuse lights misfit it broadly (a sky) shows no highlight. On the DiLiGenT ball's pairs of photos summed, from the map's peaks 70% of pairs had both
-lights within 3 degrees, from the highlights 80% (at 72 pixels across) and 92% (142, its full size).
+object whose few diffuse lights misfit it broadly (a sky) shows no highlight. On the DiLiGenT ball's
+pairs of photos summed, from the map's peaks 70% of pairs had both lights within 3 degrees, from
+the highlights 80% (at 72 pixels across) and 96% (142, its full size).
 """
 
 import itertools
@@ -205,12 +206,11 @@ def _highlight_seeds(rows, keep, grey, directions, separation: float, count: int
     R = rows(np.asarray(directions, np.float64))[keep]
     power, _ = scipy.optimize.nnls(R, grey[keep])
     excess = grey[keep] - R @ power
-    spread = 1.4826 * np.median(np.abs(excess - np.median(excess)))
-    bound = np.median(excess) + max(OUTLIER_SIGMAS * spread, OUTLIER_FLOOR * np.abs(grey[keep]).max())
+    median, spread, bound = _outlier_bound(excess, grey[keep])
+    if excess.max(initial=-np.inf) < median + HIGHLIGHT_SIGMAS * spread:
+        return np.zeros((0, 3))  # no pixel stands out as a highlight: the misfit is the model's, not a lobe's
     mirror = rows.mirror_directions()[keep]
     seeds = []
-    if excess.max(initial=-np.inf) < np.median(excess) + HIGHLIGHT_SIGMAS * spread:
-        return np.zeros((0, 3))  # no pixel stands out as a highlight: the misfit is the model's, not a lobe's
     for p in np.argsort(-excess):
         if excess[p] <= bound or len(seeds) == count:
             break
@@ -267,7 +267,7 @@ def _refine(T, scene, camera, image, env, lights, mask, rows, floor, background,
         fit = grown
         cells.append(np.zeros(np.asarray(lights.cells).shape[1], bool))  # a light the map did not show
     d, used = fit.directions, fit.used
-    R = (rows if fit.lobe is None else rows.with_reflectance(fit.lobe))(d)[keep][used]
+    R = _under(rows, fit.lobe)(d)[keep][used]
     power = np.stack([scipy.optimize.nnls(R, residual[used, c])[0] for c in range(residual.shape[1])], axis=1)
     order = np.argsort(-power.mean(axis=1), kind="stable")
     strong = order[power[order].mean(axis=1) >= floor * power[order[0]].mean()]
@@ -311,7 +311,7 @@ def _grown(rows, keep, grey, fit: "_Fit", candidates, separation: float, passes:
     refitted."""
     starts = []
     far = np.all(candidates @ fit.directions.T < np.cos(np.radians(separation)), axis=1)
-    C = (rows if fit.lobe is None else rows.with_reflectance(fit.lobe))(candidates[far])[keep][fit.used]
+    C = _under(rows, fit.lobe)(candidates[far])[keep][fit.used]
     r = fit.excess[fit.used]
     projection = C.T @ r
     gain = np.where(projection > 0, projection**2 / np.maximum(np.sum(C**2, axis=0), 1e-300), 0.0)
@@ -353,14 +353,11 @@ def _fit(rows, keep, grey, start, used=None, passes: int = OUTLIER_PASSES, evalu
         u = np.stack([d0 + z[2 * k] * e1 + z[2 * k + 1] * e2 for k, (d0, (e1, e2)) in enumerate(zip(start, frames))])
         return u / np.linalg.norm(u, axis=1, keepdims=True), np.linalg.norm(u, axis=1)
 
-    def rows_at(z):
-        return rows if lobe is None else rows.with_reflectance(SpecularLobe.from_parameters(z[3 * K:]))
-
     def model(z):
         """`(R (P_kept, K), J (P_kept, 3K [+ 2]))`: the rows, and the Jacobian of `R exp(z_s)` in `z`."""
         w, length = directions(z)
         if extra:
-            R, G, D = rows_at(z).with_parameter_gradient(w)
+            R, G, D = rows.with_reflectance(SpecularLobe.from_parameters(z[3 * K:])).with_parameter_gradient(w)
         else:
             R, G = rows.with_gradient(w)
         R, G, s = R[keep], G[keep], _powers(z[2 * K:3 * K])
@@ -374,7 +371,7 @@ def _fit(rows, keep, grey, start, used=None, passes: int = OUTLIER_PASSES, evalu
         return R, J
 
     used = np.ones(len(grey), bool) if used is None else used
-    s0, _ = scipy.optimize.nnls((rows if lobe is None else rows.with_reflectance(lobe))(start)[keep][used], grey[used])
+    s0, _ = scipy.optimize.nnls(_under(rows, lobe)(start)[keep][used], grey[used])
     z = np.concatenate([np.zeros(2 * K), np.log(np.maximum(s0, 0.05 * max(s0.max(), 1e-12))),
                         [] if lobe is None else lobe.parameters])
     scale = np.concatenate([np.full(2 * K, 0.05), np.ones(K + extra)])
@@ -397,9 +394,22 @@ def _fit(rows, keep, grey, start, used=None, passes: int = OUTLIER_PASSES, evalu
                                          max_nfev=evaluations * (K + extra // 2), ftol=FIT_TOLERANCE,
                                          xtol=FIT_TOLERANCE).x
         excess = grey - evaluate(z)[0] @ _powers(z[2 * K:3 * K])  # highlights: brighter than any diffuse fit
-        spread = 1.4826 * np.median(np.abs(excess - np.median(excess)))
-        used = excess <= np.median(excess) + max(OUTLIER_SIGMAS * spread, OUTLIER_FLOOR * np.abs(grey).max())
+        used = excess <= _outlier_bound(excess, grey)[2]
     return _Fit(directions(z)[0], excess, used, None if lobe is None else SpecularLobe.from_parameters(z[3 * K:]))
+
+
+def _outlier_bound(excess, grey) -> tuple[float, float, float]:
+    """`(median, spread, bound)` of a fit's `excess` (the photo minus the fit): its median, its robust
+    deviation (1.4826 MAD) and the bound above which a pixel is a highlight, `OUTLIER_SIGMAS` deviations
+    or `OUTLIER_FLOOR` of the brightest of `grey` above the median."""
+    median = np.median(excess)
+    spread = 1.4826 * np.median(np.abs(excess - median))
+    return median, spread, median + max(OUTLIER_SIGMAS * spread, OUTLIER_FLOOR * np.abs(grey).max())
+
+
+def _under(rows, lobe: SpecularLobe | None):
+    """`rows` under `lobe`, or `rows` as they are (their own reflectance) when there is none."""
+    return rows if lobe is None else rows.with_reflectance(lobe)
 
 
 def _powers(log_power):
