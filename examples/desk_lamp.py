@@ -1,13 +1,14 @@
 """A desk lamp from one ordinary photo of a pencil and a cup: `hiddenjax lights` as a user runs it.
 
-The photo is what a phone would give: rendered (Embree, box-filtered, 5% ambient), vignetted
-(`1 - 0.3 r^2`), scaled to its 99.5th percentile and clipped, gamma-encoded (2.2) and saved as an
-8-bit PNG twice the scene file's size. The scene file describes the desk and the objects with
+The photo is what a phone would give: rendered (Embree, box-filtered, two diffuse bounces, 5%
+ambient), vignetted (`1 - 0.3 r^2`), scaled to its 99.5th percentile and clipped, gamma-encoded
+(2.2) and saved as an 8-bit PNG twice the scene file's size. The scene file describes the desk and the objects with
 primitives (`shape = "plane"`, `"cylinder"`) and puts each object 3 mm from its true place. No
 reference photo, no mask: `hiddenjax lights scene.toml photo.png --within 1.0 -o lights.json`
 leaves out the objects' outline grown by 5 mm, fits the photo's ratio to its own smooth
-shading (the direction), then the distance from the lamp's falloff with the tone curve and
-vignetting fitted, and reports each light's 95% cone and distance interval.
+shading (the direction), then places the lamp in the photo's brightness (its falloff across the
+desk, with the tone curve and vignetting fitted, the shadow's direction as a prior), and reports
+each light's 95% cone and distance interval.
 
 Writes `photo.png`, `scene.toml`, `lights.json`, `fit.png` (photo, fitted image, difference) and
 `desk_lamp.png` (the desk from above and from the side: the objects, the true lamp, the found one
@@ -56,7 +57,8 @@ def photograph(width: int, height: int) -> np.ndarray:
         mesh.apply_translation(place)
         surfaces.append(hj.Surface(mesh, 0.5, observe=False))
     camera = hj.Camera.look_at(CAMERA["origin"], CAMERA["target"], [0, 1, 0], CAMERA["fov"], width, height)
-    radiance = hj.render_point_lights(hj.Scene(surfaces), camera, LAMP[None], [0.05], pixel_samples=9)
+    radiance = hj.render_point_lights(hj.Scene(surfaces), camera, LAMP[None], [0.05], pixel_samples=9,
+                                      bounces=2)
     radiance = radiance + 0.05 * radiance.mean()
     rows, cols = np.mgrid[:height, :width] + 0.5
     r2 = ((rows - height / 2) ** 2 + (cols - width / 2) ** 2) / ((height / 2) ** 2 + (width / 2) ** 2)

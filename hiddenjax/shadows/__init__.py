@@ -39,6 +39,8 @@ from ._polish import LightPolish as LightPolish
 from ._polish import polish_lights as polish_lights
 from ._polish import residual_correlation as residual_correlation
 from ._photometric import DistanceScan as DistanceScan
+from ._photometric import FalloffFit as FalloffFit
+from ._photometric import fit_falloff as fit_falloff
 from ._photometric import scan_distances as scan_distances
 from ._search import LightSearch as LightSearch
 from ._search import default_box as default_box

@@ -18,7 +18,7 @@ import optimistix as optx
 
 from ..scene import Camera, Scene
 from ._polish import polish_lights
-from ._photometric import scan_distances
+from ._photometric import fit_falloff
 from ._receiver import object_clearance, smooth_shading
 from ._search import _occluder_bounds, check_outside, hard_fit, occluder_centre, search_lights
 from ._shading import ShadowScene, light_images
@@ -38,7 +38,8 @@ class LightFit(NamedTuple):
     round; `ambient` the fitted constant radiance (0 without `ambient=True`); after the polish,
     `channel_intensities (L, C)` and `channel_ambient (C,)` each photo channel's own (a light's
     colour times the camera's gain; `intensities` and `ambient` are their channel means), else None;
-    after the polish, `covariance (L, 3, 3)` each light position's (`polish_lights`), else None;
+    after the polish, `covariance (L, 3, 3)` each light position's (`polish_lights`; with
+    `shading="smooth"` `fit_falloff`'s), else None;
     `warnings`: sentences about a fit to distrust (a negative ambient, a light at the search box's
     edge), also issued as `UserWarning`s.
     """
@@ -142,7 +143,9 @@ def fit_lights(
       the scene says).
     - `shading`: `"smooth"` fits the photo's ratio to its own smooth brightness field
       (`smooth_shading`: vignetting, a tone curve's slope, a falloff the scene does not know) as if
-      it were the reference photo; for real photos without a reference. Default none.
+      it were the reference photo, which places each light's direction; then `fit_falloff` places
+      the lights in the photo's brightness (the lamp's falloff through a fitted tone curve and
+      vignetting) with those directions as a prior. For real photos without a reference. Default none.
     - `box (2, 3)`: the region the search looks in without `init`, min and max corners in metres
       (default `default_box`, a few object sizes around the occluders).
 
@@ -212,11 +215,11 @@ def fit_lights(
         positions, intensities, a = polished.positions, polished.intensities, polished.ambient
         channels, covariance = (polished.channel_intensities, polished.channel_ambient), polished.covariance
         trajectory.append(positions)
-    if shading == "smooth" and polish:  # the distance along each shadow's valley from the brightness
+    if shading == "smooth" and polish:  # the place along each shadow's valley from the brightness
         box_used = None if searched is None else searched.box
-        scan = scan_distances(image, scene, shadows, positions, reference, box=box_used)
-        positions = scan.positions
-        covariance = _along_and_across(covariance, scan, positions, scene, clearance)
+        prior = _with_placement(covariance, positions, scene, clearance)
+        found = fit_falloff(image, scene, shadows, positions, reference, prior, box=box_used)
+        positions, covariance = found.positions, found.covariance
         trajectory.append(positions)
     notes = _distrust(positions, a, float(scale), None if searched is None else searched.box)
     for note in notes:
@@ -225,20 +228,18 @@ def fit_lights(
                     covariance, tuple(notes))
 
 
-def _along_and_across(covariance, scan, positions, scene: Scene, clearance):
-    """The covariance after `scan_distances`: the ratio fit's across each light's axis, the scan's
-    profile variance along it, and (with a `clearance`) the object's placement: an occluder `delta`
-    off its modelled place turns the shadow's ray by `delta / l`, `l` the length of that ray from the
-    occluder's top to the receiver (its height over the sine of the light's elevation), with
-    `delta`'s standard deviation half the clearance."""
+def _with_placement(covariance, positions, scene: Scene, clearance):
+    """Each light position's covariance from the shadows, widened (with a `clearance`) by the objects'
+    placement: an occluder `delta` off its modelled place turns the shadow's ray by `delta / l`, `l`
+    the length of that ray from the occluder's top to the receiver (its height over the sine of the
+    light's elevation), with `delta`'s standard deviation half the clearance."""
     lo, hi = _occluder_bounds(scene)
     anchor, height = (lo + hi) / 2, float(hi[1] - lo[1])
     out = []
-    for j, e in enumerate(scan.axes):
-        across = np.eye(3) - np.outer(e, e)
-        S = across @ np.asarray(covariance[j], np.float64) @ across + scan.sigma[j] ** 2 * np.outer(e, e)
+    for j, p in enumerate(np.asarray(positions, np.float64)):
+        S = np.asarray(covariance[j], np.float64)
         if clearance:
-            v = positions[j] - anchor
+            v = p - anchor
             distance = np.linalg.norm(v)
             d = v / max(distance, 1e-300)
             ray = height / max(abs(d[1]), 0.1)

@@ -1,4 +1,4 @@
-"""Each light's distance from the photo's brightness, through the camera's tone curve and vignetting.
+"""Each light's place from the photo's brightness, through the camera's tone curve and vignetting.
 
 A fit to the photo's ratio to its smooth shading (`fit_lights(shading="smooth")`) places each
 light in the valley its shadow leaves: the direction from the shadow is fixed, the distance
@@ -8,13 +8,17 @@ through the lens' vignetting and an unknown tone curve. Here the photo is modell
 
     y = c (v(r) m(x))^beta,   m = sum_l I_l h_l(x) + a,   v(r) = exp(k1 r^2 + k2 r^4),
 
-with `h_l` the unit direct image of light `l` at the fitted pixels' centres without the
-occluders (`rho/pi cos / d^2`: the falloff alone; the shadows' pixels, those of the photo below
-`SHADOW_RATIO` of its smooth shading and two pixels around them, are left out: their place set
-the direction and must not pull the distance),
-`r` the distance from the image centre over the half-diagonal (vignetting is radial: it cannot
-mimic a lamp's falloff, which is centred below the lamp), and `beta` the tone curve's power
-(`1/gamma`; 1 for a linear photo). Its log,
+with `h_l` the unit image of light `l` at the fitted pixels' centres: the direct light without
+the occluders (`rho/pi cos / d^2`: the falloff alone; the shadows' pixels, those of the photo
+below `SHADOW_RATIO` of its smooth shading and two pixels around them, are left out: their place
+set the direction and must not pull the distance) plus the light the objects throw back on the
+receiver (two diffuse bounces, `diffuse_bounce` with `BOUNCE_RAYS` rays per pixel at the starting
+positions, smoothed over `BOUNCE_BLUR` pixels and scaled by `(d0 / d)^2` with the light's
+distance `d` from the occluders' centre: a cup brightens the table around it by a few percent, a
+falloff the light would otherwise move to explain), `r` the distance from the image centre
+over the half-diagonal (vignetting is radial: it cannot mimic a lamp's falloff, which is
+centred below the lamp), and `beta` the tone curve's power (`1/gamma`; 1 for a linear photo).
+Pixels at the photo's maximum (within `SATURATION`) are clipped and left out. Its log,
 
     log y = log c + beta log m + k1' r^2 + k2' r^4        (k' = beta k; the first light's I is 1),
 
@@ -26,6 +30,28 @@ best `t` over a grid, refined by a parabola, is the distance; the profile of the
 gives its interval, `{t : (rss(t) - rss_min) / (s^2 kappa) <= chi2_1(level)}`, with `s^2` the
 robust loss per pixel at the best `t` and `kappa` the residual's correlation area
 (`residual_correlation`).
+
+The ray came from the shadow, whose direction is only as good as the objects' modelled places
+(3 mm at the end of a 10 cm shadow is 1.7 degrees), and a falloff centred on a wrong ray gives a
+wrong distance. The falloff alone, though, places the light in all three coordinates: its
+centre sits below the light, its width is the light's height. `fit_falloff` therefore ends with
+one joint robust fit of all the lights' positions and the parameters above, the shadow's
+direction entering as a Gaussian prior on each light's direction `u = (p - c) / |p - c|` from the
+occluders' centre `c`:
+
+    min  sum_i rho(r_i / (s sqrt(kappa))) + sum_l |W_l (u_l - u0_l)|^2,
+
+`r_i` the log residuals above, `rho` the robust loss, `s^2` their variance per pixel and `kappa`
+their correlation area at the scan's end, `W_l^T W_l` the inverse of the shadow's angular
+covariance across its ray (`prior`); `s` and `kappa` are taken again from each fit's residual
+until they settle (at most `NOISE_ROUNDS` fits). The prior is then checked against the photo:
+one Gauss-Newton step from the joint answer without it gives the falloff's own direction
+`u_f` (covariance `C_f`), and where `g = u_f - u0` is farther than `g^T (C_f + C_0)^-1 g = 2`
+(the 2-degree-of-freedom chi-square at its mean) the shadow's covariance `C_0` is scaled by the
+`s0^2 > 1` that brings it there (the objects stand farther from their modelled places than the
+clearance says; the falloff does not depend on where they stand) and the fit is repeated. The
+positions' covariance is the Gauss-Newton one of the last fit, `(J^T D J)^-1` with `D` the
+robust loss' weights, marginalized over the tone curve, vignetting, ambient and intensity ratios.
 """
 
 from typing import NamedTuple
@@ -37,11 +63,16 @@ import scipy.stats
 
 from ..scene import Scene
 from ..transport._embree import RayCaster
-from ._polish import residual_correlation
+from ._polish import diffuse_bounce, residual_correlation
 from ._search import _unit_images, occluder_centre
 
 LOG_SCALE = 0.1  # the robust loss' scale in log radiance
 SHADOW_RATIO = 0.9  # a fitted pixel darker than this fraction of the photo's smooth shading is in a shadow
+TONE_POWER = (0.25, 2.5)  # the tone curve's power beta searched in the joint fit (gamma 0.4-4)
+NOISE_ROUNDS = 4  # joint fits at most, each weighting the photo by the last one's residual
+SATURATION = 1e-3  # a pixel within this fraction of the photo's maximum is clipped
+BOUNCE_RAYS = 16  # cosine-distributed rays per pixel for the objects' bounce light
+BOUNCE_BLUR = 2.0  # pixels: the bounce light's Monte Carlo estimate is smoothed over this (a Gaussian sigma)
 
 
 class DistanceScan(NamedTuple):
@@ -64,26 +95,96 @@ def _radius2(pixels, shape) -> np.ndarray:
     return (((rows + 0.5) - H / 2) ** 2 + ((cols + 0.5) - W / 2) ** 2) / ((H / 2) ** 2 + (W / 2) ** 2)
 
 
+class FalloffFit(NamedTuple):
+    """Result of `fit_falloff`: `positions (L, 3)` metres and their `covariance (L, 3, 3)` (module
+    docstring); `beta` the tone curve's power and `vignetting (2,)` `(k1, k2)`; `correlation` the
+    residual's correlation area `kappa` and `noise` its standard deviation `s` per pixel (log
+    radiance) that weighted the photo against the prior; `prior_scale (L,)` the factor `s0^2 >= 1`
+    each shadow's direction covariance was widened by to agree with the falloff; `scan` the ray
+    scan that started it."""
+
+    positions: np.ndarray
+    covariance: np.ndarray
+    beta: float
+    vignetting: np.ndarray
+    correlation: float
+    noise: float
+    prior_scale: np.ndarray
+    scan: DistanceScan
+
+
+class _Brightness:
+    """The fitted pixels' log brightness and each light's unit image there: the falloff plus the
+    objects' bounce light (module docstring)."""
+
+    def __init__(self, image, scene: Scene, shadows, positions, shading):
+        y = np.asarray(shadows.image_to_rows(image), np.float64)
+        u = np.asarray(shadows.image_to_rows(shading), np.float64)
+        H, W = self.shape = shadows.image_shape
+        fitted = np.asarray(shadows.pixels)
+        dark = np.zeros(H * W, np.uint8)
+        dark[fitted[y < SHADOW_RATIO * u]] = 1
+        dark = cv2.dilate(dark.reshape(H, W), np.ones((5, 5), np.uint8)).reshape(-1).astype(bool)
+        top = float(np.max(np.asarray(image)))
+        self.keep = (y > 0) & ~dark[fitted] & (y < (1 - SATURATION) * top)
+        if self.keep.sum() < 20:
+            raise ValueError("the photo is black, shadowed or clipped over the fitted pixels: no distance can be "
+                             "read from its brightness")
+        self.shadows, self.pixels = shadows, fitted[self.keep]
+        self.log_y, self.r2 = np.log(y[self.keep]), _radius2(self.pixels, self.shape)
+        observed = [surface for surface in scene if surface.observe]
+        self.caster = RayCaster(Scene(observed) if observed else scene)  # the falloff alone: no occluders
+        self.anchor = occluder_centre(scene)
+        caster = RayCaster(scene)
+        x, n, rho = (np.asarray(a, np.float64)[self.keep] for a in (shadows.points, shadows.normals, shadows.albedo))
+        self.start = np.array(positions, np.float64)
+        self.bounce = np.stack([self._smooth(diffuse_bounce(caster, x, n, rho, p, BOUNCE_RAYS, seed=k, bounces=2))
+                                for k, p in enumerate(self.start)], axis=1)
+        self._last = None
+
+    def _smooth(self, values: np.ndarray) -> np.ndarray:
+        """A Gaussian of `BOUNCE_BLUR` pixels over the kept pixels (normalized convolution)."""
+        H, W = self.shape
+        image, weight = np.zeros(H * W), np.zeros(H * W)
+        image[self.pixels], weight[self.pixels] = values, 1.0
+        blur = lambda a: cv2.GaussianBlur(a.reshape(H, W), (0, 0), BOUNCE_BLUR).reshape(-1)
+        return (blur(image) / np.maximum(blur(weight), 1e-12))[self.pixels]
+
+    def images(self, positions, lights) -> np.ndarray:
+        """`(N, K)` the unit image of light `lights[k]` placed at `positions[k]`."""
+        positions = np.asarray(positions, np.float64)
+        key = positions.tobytes() + np.asarray(lights).tobytes()
+        if self._last is not None and self._last[0] == key:  # a Jacobian's steps in the other parameters
+            return self._last[1]
+        direct = _unit_images(self.caster, self.shadows, positions).T[self.keep]
+        d0 = np.linalg.norm(self.start[lights] - self.anchor, axis=1)
+        d = np.maximum(np.linalg.norm(positions - self.anchor, axis=1), 1e-9)
+        out = direct + self.bounce[:, lights] * (d0 / d) ** 2
+        self._last = key, out
+        return out
+
+
+def _log_residual(q, h, log_y, r2):
+    """`C + beta log(h @ w + a <h @ w>) + k1' r2 + k2' r2^2 - log y` for `q = [C, beta, k1', k2', a, q_2..q_L]`."""
+    lit = h.sum(axis=1) > 0
+    mean = float(np.mean(h[lit].sum(axis=1))) if lit.any() else 1.0
+    w = np.concatenate([[1.0], np.exp(np.clip(q[5:], -30, 30))])
+    m = h @ w + q[4] * mean * w.mean()
+    return q[0] + q[1] * np.log(np.maximum(m, 1e-6 * mean)) + q[2] * r2 + q[3] * r2**2 - log_y
+
+
 def _log_fit(h: np.ndarray, log_y: np.ndarray, r2: np.ndarray, start=None):
     """Fit `log y ~ C + beta log(h @ w + a <h @ w>) + k1' r2 + k2' r2^2` (module docstring; `w_1 = 1`, the
     other lights' relative intensities `w_l = exp(q_l)`, `a` the ambient relative to the mean lit
     radiance): `(params [C, beta, k1', k2', a, q_2..q_L], loss, residual)`."""
     L = h.shape[1]
-    lit = h.sum(axis=1) > 0
-    mean = float(np.mean(h[lit].sum(axis=1))) if lit.any() else 1.0
-    floor = 1e-6 * mean
-
-    def residual(q):
-        w = np.concatenate([[1.0], np.exp(np.clip(q[5:], -30, 30))])
-        base = h @ w
-        m = base + q[4] * mean * w.mean()
-        return q[0] + q[1] * np.log(np.maximum(m, floor)) + q[2] * r2 + q[3] * r2**2 - log_y
-
     if start is None:
+        lit = h.sum(axis=1) > 0
+        floor = 1e-6 * (float(np.mean(h[lit].sum(axis=1))) if lit.any() else 1.0)
         start = np.concatenate([[np.median(log_y[lit]) - np.median(np.log(np.maximum(h[lit].sum(axis=1), floor))),
                                  1.0, 0.0, 0.0, 0.05], np.zeros(L - 1)])
-    found = scipy.optimize.least_squares(residual, start, loss="soft_l1", f_scale=LOG_SCALE, method="trf",
-                                         x_scale="jac", max_nfev=200)
+    found = scipy.optimize.least_squares(_log_residual, start, loss="soft_l1", f_scale=LOG_SCALE, method="trf",
+                                         x_scale="jac", max_nfev=200, args=(h, log_y, r2))
     return found.x, 2 * found.cost, found.fun
 
 
@@ -96,43 +197,34 @@ def scan_distances(image, scene: Scene, shadows, positions, shading, *, box=None
     smooth shading (`smooth_shading`); `box (2, 3)` bounds the scan (default the segment from a
     tenth to three times each light's distance from the occluders' centre).
     """
+    brightness = _Brightness(image, scene, shadows, positions, shading)
+    return _scan(brightness, positions, box, points, sweeps, level)[0]
+
+
+def _scan(b: _Brightness, positions, box, points: int, sweeps: int, level: float):
+    """`scan_distances` on prepared pixels: `(DistanceScan, params, loss, residual)`."""
     positions = np.array(positions, np.float64)
-    y = np.asarray(shadows.image_to_rows(image), np.float64)
-    u = np.asarray(shadows.image_to_rows(shading), np.float64)
-    H, W = shadows.image_shape
-    dark = np.zeros(H * W, np.uint8)
-    dark[np.asarray(shadows.pixels)[y < SHADOW_RATIO * u]] = 1
-    dark = cv2.dilate(dark.reshape(H, W), np.ones((5, 5), np.uint8)).reshape(-1).astype(bool)
-    keep = (y > 0) & ~dark[np.asarray(shadows.pixels)]
-    if keep.sum() < 20:
-        raise ValueError("the photo is black over the fitted pixels: no distance can be read from its brightness")
-    pixels = np.asarray(shadows.pixels)[keep]
-    log_y, r2 = np.log(y[keep]), _radius2(pixels, shadows.image_shape)
-    observed = [surface for surface in scene if surface.observe]
-    caster = RayCaster(Scene(observed) if observed else scene)  # the falloff alone: no occluders, no shadows
-    anchor = occluder_centre(scene)
-    columns = _unit_images(caster, shadows, positions).T[keep]
     L = len(positions)
+    columns = b.images(positions, np.arange(L))
     axes, sigma, intervals = np.zeros((L, 3)), np.zeros(L), np.zeros((L, 2))
-    params, loss, residual = _log_fit(columns, log_y, r2)
+    params, loss, residual = _log_fit(columns, b.log_y, b.r2)
     for _ in range(sweeps):
         for j in range(L):
-            reach = np.linalg.norm(positions[j] - anchor)
-            e = (positions[j] - anchor) / max(reach, 1e-300)
+            reach = np.linalg.norm(positions[j] - b.anchor)
+            e = (positions[j] - b.anchor) / max(reach, 1e-300)
             lo, hi = -0.9 * reach, 2.0 * reach
             if box is not None:  # stay inside the box: t where p + t e is in it
                 with np.errstate(divide="ignore", invalid="ignore"):
-                    a, b = (box[0] - positions[j]) / e, (box[1] - positions[j]) / e
-                lo = max(lo, float(np.nanmax(np.where(e != 0, np.minimum(a, b), -np.inf))))
-                hi = min(hi, float(np.nanmin(np.where(e != 0, np.maximum(a, b), np.inf))))
+                    lower, upper = (box[0] - positions[j]) / e, (box[1] - positions[j]) / e
+                lo = max(lo, float(np.nanmax(np.where(e != 0, np.minimum(lower, upper), -np.inf))))
+                hi = min(hi, float(np.nanmin(np.where(e != 0, np.maximum(lower, upper), np.inf))))
             ts = np.linspace(lo, hi, points)
-            candidates = positions[j] + ts[:, None] * e
-            images = _unit_images(caster, shadows, candidates)[:, keep]
+            images = b.images(positions[j] + ts[:, None] * e, np.full(points, j))
             losses, fits = np.empty(points), []
             for k in range(points):
                 trial = columns.copy()
-                trial[:, j] = images[k]
-                fits.append(_log_fit(trial, log_y, r2, params))
+                trial[:, j] = images[:, k]
+                fits.append(_log_fit(trial, b.log_y, b.r2, params))
                 losses[k] = fits[-1][1]
             best = int(np.argmin(losses))
             t = ts[best]
@@ -142,14 +234,125 @@ def scan_distances(image, scene: Scene, shadows, positions, shading, *, box=None
                 if curvature > 0:
                     t = ts[best] + 0.5 * (ts[1] - ts[0]) * (l0 - l2) / curvature
             params, loss, residual = fits[best]
-            columns[:, j] = images[best]
+            columns[:, j] = images[:, best]
             positions[j] = positions[j] + t * e
             s2 = float(loss) / max(len(residual) - (L + 4), 1)  # the robust loss per pixel, as the profile's
-            kappa = residual_correlation(residual, pixels, shadows.image_shape)
+            kappa = residual_correlation(residual, b.pixels, b.shape)
             inside = ts[(losses - losses.min()) / (s2 * kappa) <= scipy.stats.chi2.ppf(level, 1)]
             intervals[j] = [inside.min() - t - (ts[1] - ts[0]), inside.max() - t + (ts[1] - ts[0])]
             sigma[j] = (intervals[j, 1] - intervals[j, 0]) / (2 * scipy.stats.norm.ppf(0.5 + level / 2))
             axes[j] = e
     beta = float(params[1])
     vignetting = params[2:4] / beta if beta != 0 else np.zeros(2)
-    return DistanceScan(positions, axes, sigma, intervals, beta, vignetting)
+    return DistanceScan(positions, axes, sigma, intervals, beta, vignetting), params, loss, residual
+
+
+def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=None, points: int = 25,
+                max_evaluations: int = 60) -> FalloffFit:
+    """The lights' positions from the photo's brightness, the shadows' directions as a prior (module
+    docstring): a scan along each light's ray from the occluders' centre through `positions (L, 3)`
+    (`scan_distances`, one sweep), then the joint robust fit of all positions with the tone curve,
+    vignetting, ambient and intensity ratios, the prior widened where the photo disagrees with it.
+
+    `shadows` is the fit's `ShadowScene`, `shading (H, W[, C])` the photo's smooth shading
+    (`smooth_shading`); `prior (L, 3, 3)` each light position's covariance from the shadows, of
+    which the part across the ray, over the squared distance, is the direction's (the part along
+    it is not used); `box (2, 3)` bounds the positions.
+    """
+    positions = np.array(positions, np.float64)
+    L = len(positions)
+    prior = np.asarray(prior, np.float64)
+    if prior.shape != (L, 3, 3) or not np.all(np.isfinite(prior)):
+        raise ValueError(f"prior must be one finite 3x3 covariance per light, shape {(L, 3, 3)}, got {prior.shape}")
+    b = _Brightness(image, scene, shadows, positions, shading)
+    scan, params, loss, residual = _scan(b, positions, box, points, 1, 0.95)
+    N, Q = len(b.log_y), len(params)
+    directions, whiten, priors = [], [], []
+    for p, S in zip(positions, prior):  # the shadow's direction and its angular covariance across the ray
+        v = p - b.anchor
+        d = v / max(np.linalg.norm(v), 1e-300)
+        across = (np.eye(3) - np.outer(d, d)) @ S @ (np.eye(3) - np.outer(d, d)) / max(v @ v, 1e-300)
+        values, vectors = np.linalg.eigh(across)  # the smallest is the ray itself
+        directions.append(d)
+        priors.append((vectors[:, 1:].T, np.maximum(values[1:], 1e-12)))
+        whiten.append(priors[-1][0] / np.sqrt(priors[-1][1])[:, None])
+
+    def photo_rows(z):
+        return _log_residual(z[:Q], b.images(z[Q:].reshape(L, 3), np.arange(L)), b.log_y, b.r2)
+
+    def residuals(z, weight):
+        v = z[Q:].reshape(L, 3) - b.anchor
+        u = v / np.maximum(np.linalg.norm(v, axis=1), 1e-300)[:, None]
+        return np.concatenate([weight * photo_rows(z), *(W @ (u[l] - directions[l]) for l, W in enumerate(whiten))])
+
+    def rows_loss(weight):  # soft_l1 on the photo's rows (scale LOG_SCALE in log radiance), squares on the prior's
+        c2 = (LOG_SCALE * weight) ** 2
+
+        def loss(z):
+            out = np.empty((3, len(z)))
+            t = 1 + z[:N] / c2
+            out[0, :N], out[1, :N], out[2, :N] = 2 * c2 * (np.sqrt(t) - 1), t**-0.5, -0.5 / c2 * t**-1.5
+            out[0, N:], out[1, N:], out[2, N:] = z[N:], 1.0, 0.0
+            return out
+
+        return loss
+
+    z = np.concatenate([params, scan.positions.reshape(-1)])
+    lower, upper = np.full(len(z), -np.inf), np.full(len(z), np.inf)
+    lower[1], upper[1] = TONE_POWER  # (beta near 0 flattens the photo and frees the positions)
+    if box is not None:
+        lower[Q:], upper[Q:] = np.tile(box[0], L), np.tile(box[1], L)
+    z = np.clip(z, lower + 1e-9, upper - 1e-9)
+    weight = None
+    for _ in range(NOISE_ROUNDS):  # the photo's noise and correlation area, from the last fit's residual
+        noise = float(np.sqrt(loss / max(N - (Q + 1), 1)))
+        kappa = residual_correlation(residual, b.pixels, b.shape)
+        new = 1.0 / (max(noise, 1e-9) * np.sqrt(kappa))
+        if weight is not None and abs(np.log(new / weight)) < np.log(1.1):
+            break
+        weight = new
+        found = scipy.optimize.least_squares(residuals, z, loss=rows_loss(weight), method="trf", x_scale="jac",
+                                             bounds=(lower, upper), max_nfev=max_evaluations, args=(weight,))
+        z, residual = found.x, photo_rows(found.x)
+        loss = float(np.sum(2 * LOG_SCALE**2 * (np.sqrt(1 + (residual / LOG_SCALE) ** 2) - 1)))
+    # The falloff alone, one Gauss-Newton step from the joint answer without the prior (at the optimum
+    # the photo's gradient is minus the prior's, -J_p^T f_p). Where its direction and the shadow's
+    # disagree by more than their covariances allow, the shadow's is widened until they agree (the
+    # objects stand farther from their modelled places than the clearance says), and the fit repeated.
+    J, f = found.jac, found.fun
+    alone = np.linalg.pinv(J[:N].T @ J[:N], hermitian=True)
+    z_alone = found.x + alone @ (J[N:].T @ f[N:])
+    scales = np.ones(L)
+    for l, (E, variances) in enumerate(priors):  # in the plane across the shadow's direction
+        v = z_alone[Q + 3 * l: Q + 3 * l + 3] - b.anchor
+        u = v / max(np.linalg.norm(v), 1e-300)
+        across = (np.eye(3) - np.outer(u, u)) / max(np.linalg.norm(v), 1e-300)
+        C = E @ across @ alone[Q + 3 * l: Q + 3 * l + 3, Q + 3 * l: Q + 3 * l + 3] @ across.T @ E.T
+        scales[l] = _prior_scale(E @ (u - directions[l]), C, np.diag(variances))
+        whiten[l] = whiten[l] / np.sqrt(scales[l])
+    if np.any(scales > 1):
+        found = scipy.optimize.least_squares(residuals, found.x, loss=rows_loss(weight), method="trf", x_scale="jac",
+                                             bounds=(lower, upper), max_nfev=max_evaluations, args=(weight,))
+    J = found.jac  # scaled by the robust loss: J^T J is the Gauss-Newton Hessian of the cost
+    covariance = np.linalg.pinv(J.T @ J)[Q:, Q:]
+    q = found.x[:Q]
+    positions = found.x[Q:].reshape(L, 3)
+    beta = float(q[1])
+    vignetting = q[2:4] / beta if beta != 0 else np.zeros(2)
+    blocks = np.stack([covariance[3 * l: 3 * l + 3, 3 * l: 3 * l + 3] for l in range(L)])
+    return FalloffFit(positions, blocks, beta, vignetting, float(kappa), noise, scales, scan)
+
+
+def _prior_scale(gap, falloff, prior) -> float:
+    """`s^2 >= 1` with `gap^T (falloff + s^2 prior)^-1 gap = 2` (the 2-dof chi-square at its mean), or 1
+    where the gap already fits: the factor on the prior's covariance that makes the two agree."""
+    chi2 = lambda s2: float(gap @ np.linalg.solve(falloff + s2 * prior, gap))
+    if chi2(1.0) <= 2:
+        return 1.0
+    lo, hi = 0.0, 1.0
+    while chi2(np.exp(hi)) > 2 and hi < 30:
+        lo, hi = hi, 2 * hi
+    for _ in range(40):  # bisection in log s^2: chi2 falls as s^2 grows
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if chi2(np.exp(mid)) > 2 else (lo, mid)
+    return float(np.exp(hi))

@@ -53,9 +53,9 @@ import numpy as np
 import scipy.optimize
 
 from ..scene import Camera, Scene
-from ..scene._sampling import cosine_directions
 from ..transport._build import _observed_pixels
 from ..transport._embree import RayCaster, primary_hits
+from ..transport._point_lights import interreflected
 from ._search import _fit, check_outside, check_reference, direct_images, positive_reference
 
 
@@ -136,26 +136,17 @@ class _Footprints:
         return direct_images(caster, self.x, self.n, self.rho, p).reshape(-1, self.S).mean(axis=1)
 
     def bounce(self, p, rays: int, seed: int, bounces: int = 1, plain: bool = False) -> np.ndarray:
-        """`(P,)` the diffuse interreflections of a unit light at `p`, up to `bounces` (1 or 2):
-        `rays` cosine-distributed rays per footprint point; a second bounce follows one more
-        cosine-distributed ray from each surface they hit (a path-traced estimate)."""
-        rng = np.random.default_rng(seed)
-        n, x = np.repeat(self.n, rays, axis=0), np.repeat(self.x, rays, axis=0)
-        radiance = self._outgoing(self.plain if plain else self.caster, x, n, p, rng, bounces)
-        return (np.repeat(self.rho, rays) * radiance).reshape(-1, self.S * rays).mean(axis=1)
+        """`(P,)` the diffuse interreflections of a unit light at `p`, up to `bounces` (1 or 2), over
+        each pixel's footprint points (`diffuse_bounce`)."""
+        caster = self.plain if plain else self.caster
+        return diffuse_bounce(caster, self.x, self.n, self.rho, p, rays, seed, bounces).reshape(-1, self.S).mean(axis=1)
 
-    def _outgoing(self, caster: RayCaster, x, n, p, rng, bounces: int) -> np.ndarray:
-        """Radiance arriving at `x` along one cosine-distributed ray each, from surfaces lit directly
-        and (`bounces - 1` times) indirectly. Cosine-distributed rays: `E = pi/K sum L`, so the
-        reflected radiance is `rho/pi E = rho/K sum L`."""
-        hits = caster.intersect(x, cosine_directions(n, rng))
-        radiance = np.zeros(len(x))
-        h = np.nonzero(hits.surface >= 0)[0]
-        z, nz, rho = hits.position[h] + caster.offset * hits.normal[h], hits.normal[h], hits.albedo[h]
-        radiance[h] = direct_images(caster, z, nz, rho, p)
-        if bounces > 1:
-            radiance[h] += rho * self._outgoing(caster, z, nz, p, rng, bounces - 1)
-        return radiance
+
+def diffuse_bounce(caster: RayCaster, x, n, rho, p, rays: int, seed: int, bounces: int = 1) -> np.ndarray:
+    """`(N,)` the diffuse interreflections at points `x (N, 3)` (normals `n`, albedo `rho`) of a unit
+    light at `p (3,)`, up to `bounces` (1 or 2), `rays` cosine-distributed rays per point
+    (`interreflected`: a path-traced estimate)."""
+    return interreflected(caster, x, n, rho, np.asarray(p, np.float64)[None], np.ones(1), rays, seed, bounces)
 
 
 def _fit_channels(columns: np.ndarray, Y: np.ndarray, ambient: bool, gain: np.ndarray | None = None):

@@ -13,6 +13,7 @@ import copy
 import numpy as np
 
 from ..scene import Camera, MeasuredReflectance, Scene, SpecularLobe
+from ..scene._sampling import cosine_directions
 from ._build import _Points
 from ._embree import RayCaster, pixel_centre_hits, primary_hits
 from ._matrix import TransportMatrix
@@ -30,31 +31,70 @@ def check_lights(lights, intensities=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def render_point_lights(
-    scene: Scene, camera: Camera, lights, intensities=None, pixel_samples: int = 4, seed: int = 0
+    scene: Scene, camera: Camera, lights, intensities=None, pixel_samples: int = 4, seed: int = 0, *,
+    bounces: int = 0, bounce_rays: int = 16,
 ) -> np.ndarray:
     """`(H, W)` float32 radiance of `scene` lit by point lights `(L, 3)`, hard shadows, box filter.
 
-    `intensities (L,)` in W/sr (default 1). Pixels that see no surface are 0.
+    `intensities (L,)` in W/sr (default 1). Pixels that see no surface are 0. `bounces` (0, 1 or 2)
+    adds that many diffuse interreflections (`interreflected`, `bounce_rays` rays per footprint
+    point): a path-traced estimate of the light the surfaces throw on each other.
     """
     lights, intensities = check_lights(lights, intensities)
+    if bounces not in (0, 1, 2) or bounce_rays < 1 or int(bounce_rays) != bounce_rays:
+        raise ValueError(f"bounces must be 0, 1 or 2 and bounce_rays a whole number >= 1, got {bounces!r}, "
+                         f"{bounce_rays!r}")
     caster = RayCaster(scene)
     hits, _ = primary_hits(caster, camera, pixel_samples, seed)
     hit = hits.surface >= 0
     x = hits.position[hit] + caster.offset * hits.normal[hit]
     n, albedo = hits.normal[hit], hits.albedo[hit]
     out = np.zeros(len(hits.surface))
+    out[hit] = direct_light(caster, x, n, albedo, lights, intensities)
+    if bounces:
+        out[hit] += interreflected(caster, x, n, albedo, lights, intensities, bounce_rays, seed + 1, bounces)
+    return out.reshape(camera.height, camera.width, pixel_samples).mean(axis=2).astype(np.float32)
+
+
+def direct_light(caster: RayCaster, x, n, albedo, lights, intensities) -> np.ndarray:
+    """`(N,)` radiance `sum_l rho/pi I_l max(0, n.w) / d^2 V(x, l)` at points `x (N, 3)` (lifted off their
+    surface), normals `n`, albedo `albedo` (module docstring)."""
+    out = np.zeros(len(x))
     for light, power in zip(lights, intensities):
         v = light - x
         d = np.linalg.norm(v, axis=1)
         w = v / np.maximum(d, 1e-300)[:, None]
         cos = np.sum(n * w, axis=1)
-        lit = (cos > 0) & (d > 0)
         # Occlusion only between the point and the light: shorten the ray to length d.
-        visible = np.zeros(len(x), dtype=bool)
-        idx = np.nonzero(lit)[0]
-        visible[idx] = ~caster.occluded_within(x[idx], w[idx], d[idx])
-        out[hit] += np.where(visible, albedo / np.pi * power * cos / np.maximum(d, 1e-300) ** 2, 0.0)
-    return out.reshape(camera.height, camera.width, pixel_samples).mean(axis=2).astype(np.float32)
+        idx = np.nonzero((cos > 0) & (d > 0))[0]
+        visible = idx[~caster.occluded_within(x[idx], w[idx], d[idx])]
+        out[visible] += albedo[visible] / np.pi * power * cos[visible] / d[visible] ** 2
+    return out
+
+
+def interreflected(caster: RayCaster, x, n, albedo, lights, intensities, rays: int, seed: int,
+                   bounces: int = 1) -> np.ndarray:
+    """`(N,)` the diffuse interreflections at points `x (N, 3)` under point lights, up to `bounces` (1 or
+    2): `rays` cosine-distributed rays per point to the surfaces `z` they hit, each lit directly
+    (`direct_light`) and, for a second bounce, through one more cosine-distributed ray; the reflected
+    radiance is `rho/K sum_k L(z_k)` (cosine-distributed rays: `E = pi/K sum L`)."""
+    rng = np.random.default_rng(seed)
+    repeated = np.repeat(np.asarray(x, np.float64), rays, axis=0), np.repeat(np.asarray(n, np.float64), rays, axis=0)
+    radiance = _arriving(caster, *repeated, lights, intensities, rng, bounces)
+    return np.asarray(albedo, np.float64) * radiance.reshape(-1, rays).mean(axis=1)
+
+
+def _arriving(caster: RayCaster, x, n, lights, intensities, rng, bounces: int) -> np.ndarray:
+    """Radiance arriving at `x` along one cosine-distributed ray each, from surfaces lit directly and
+    (`bounces - 1` times) indirectly."""
+    hits = caster.intersect(x, cosine_directions(n, rng))
+    radiance = np.zeros(len(x))
+    h = np.nonzero(hits.surface >= 0)[0]
+    z, nz, rho = hits.position[h] + caster.offset * hits.normal[h], hits.normal[h], hits.albedo[h]
+    radiance[h] = direct_light(caster, z, nz, rho, lights, intensities)
+    if bounces > 1:
+        radiance[h] += rho * _arriving(caster, z, nz, lights, intensities, rng, bounces - 1)
+    return radiance
 
 
 def depth_map(scene: Scene, camera: Camera) -> np.ndarray:
