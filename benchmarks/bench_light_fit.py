@@ -310,7 +310,7 @@ def _faulty_picture(path, rows):
                    marker=marker, label=label)
     ax.axhline(3.0, color="k", ls="--", lw=0.8)
     finish_plot(fig, ax, path, "distance error (cm, found - true)", "direction error (deg)",
-                "faulty desk photos: vignetting, unknown gamma, objects 3 mm off")
+                "faulty desk photos: vignetting, unknown gamma,\nobjects 3 mm off")
 
 
 if __name__ == "__main__":

@@ -39,8 +39,8 @@ def add_parsers(sub) -> None:
                                              "a photo of another size with the same aspect ratio is resampled)")
     p.add_argument("--shading", choices=("smooth", "none"),
                    help="smooth: fit the photo's ratio to its own smooth brightness field (vignetting, the tone "
-                        "curve, a falloff the scene does not know), then each light's distance from the falloff "
-                        "with the tone curve and vignetting fitted; none: the photo as calibrated radiance. Default: "
+                        "curve, a falloff the scene does not know) for each light's direction, then each light's place "
+                        "from the lamp's falloff with the tone curve and vignetting fitted; none: the photo as calibrated radiance. Default: "
                         "smooth for 8/16-bit photos (a camera's), none for EXR/HDR and with --reference")
     p.add_argument("--clearance", type=float,
                    help="metres: leave out the pixels this close to the objects' modelled outline (a real object "
