@@ -267,15 +267,14 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     b = _Brightness(image, scene, shadows, positions, shading)
     scan, params, loss, residual = _scan(b, positions, box, points, 1, 0.95)
     N, Q = len(b.log_y), len(params)
-    directions, whiten, priors = [], [], []
+    directions, priors = [], []
     for p, S in zip(positions, prior):  # the shadow's direction and its angular covariance across the ray
         v = p - b.anchor
         d = v / max(np.linalg.norm(v), 1e-300)
         across = (np.eye(3) - np.outer(d, d)) @ S @ (np.eye(3) - np.outer(d, d)) / max(v @ v, 1e-300)
         values, vectors = np.linalg.eigh(across)  # the smallest is the ray itself
         directions.append(d)
-        priors.append((vectors[:, 1:].T, np.maximum(values[1:], 1e-12)))
-        whiten.append(priors[-1][0] / np.sqrt(priors[-1][1])[:, None])
+        priors.append((vectors[:, 1:].T, np.maximum(values[1:], 1e-12)))  # (axes across it, their variances)
 
     def photo_rows(z):
         return _log_residual(z[:Q], b.images(z[Q:].reshape(L, 3), np.arange(L)), b.log_y, b.r2)
@@ -283,7 +282,8 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     def residuals(z, weight):
         v = z[Q:].reshape(L, 3) - b.anchor
         u = v / np.maximum(np.linalg.norm(v, axis=1), 1e-300)[:, None]
-        return np.concatenate([weight * photo_rows(z), *(W @ (u[l] - directions[l]) for l, W in enumerate(whiten))])
+        return np.concatenate([weight * photo_rows(z), *((E @ (u[l] - directions[l])) / np.sqrt(variances)
+                                                         for l, (E, variances) in enumerate(priors))])
 
     def rows_loss(weight):  # soft_l1 on the photo's rows (scale LOG_SCALE in log radiance), squares on the prior's
         c2 = (LOG_SCALE * weight) ** 2
@@ -329,7 +329,7 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         across = (np.eye(3) - np.outer(u, u)) / max(np.linalg.norm(v), 1e-300)
         C = E @ across @ alone[Q + 3 * l: Q + 3 * l + 3, Q + 3 * l: Q + 3 * l + 3] @ across.T @ E.T
         scales[l] = _prior_scale(E @ (u - directions[l]), C, np.diag(variances))
-        whiten[l] = whiten[l] / np.sqrt(scales[l])
+        priors[l] = E, variances * scales[l]
     if np.any(scales > 1):
         found = scipy.optimize.least_squares(residuals, found.x, loss=rows_loss(weight), method="trf", x_scale="jac",
                                              bounds=(lower, upper), max_nfev=max_evaluations, args=(weight,))

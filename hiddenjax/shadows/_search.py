@@ -29,6 +29,7 @@ import scipy.optimize
 
 from ..scene import Camera, Scene
 from ..transport._embree import RayCaster
+from ..transport._point_lights import direct_images
 from ._shading import ShadowScene
 
 
@@ -85,21 +86,6 @@ def search_box_within(scene: Scene, distance: float) -> np.ndarray:
     low = hi[1] + 0.25 * (hi[1] - lo[1])
     return np.array([[centre[0] - distance, low, centre[2] - distance],
                      [centre[0] + distance, max(hi[1] + distance, low + 1e-3), centre[2] + distance]])
-
-
-def direct_images(caster: RayCaster, x, n, rho, p, shade: bool = True) -> np.ndarray:
-    """`rho/pi max(0, n.w) / d^2 V(x, p)` per point `x (N, 3)` (normals `n`, albedo `rho`) for a unit
-    light at `p`, `(3,)` or one per point `(N, 3)` (eq. 4.11 with Embree's hard visibility);
-    `shade=False`: the visibility alone, `V(x, p)` where `n.w > 0`, else 0."""
-    v = np.asarray(p, np.float64) - x
-    d = np.linalg.norm(v, axis=-1)
-    w = v / np.maximum(d, 1e-300)[:, None]
-    cos = np.sum(n * w, axis=-1)
-    lit = np.nonzero((cos > 0) & (d > 0))[0]
-    visible = lit[~caster.occluded_within(x[lit], w[lit], d[lit])]
-    out = np.zeros(len(x))
-    out[visible] = rho[visible] / np.pi * cos[visible] / d[visible] ** 2 if shade else 1.0
-    return out
 
 
 def _unit_images(caster: RayCaster, shadows: ShadowScene, positions: np.ndarray, batch: int = 16,

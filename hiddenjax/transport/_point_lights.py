@@ -57,18 +57,27 @@ def render_point_lights(
 
 
 def direct_light(caster: RayCaster, x, n, albedo, lights, intensities) -> np.ndarray:
-    """`(N,)` radiance `sum_l rho/pi I_l max(0, n.w) / d^2 V(x, l)` at points `x (N, 3)` (lifted off their
-    surface), normals `n`, albedo `albedo` (module docstring)."""
+    """`(N,)` radiance `sum_l I_l direct_images(x, l)` at points `x (N, 3)` (lifted off their surface),
+    normals `n`, albedo `albedo`, under point lights `(L, 3)` of intensities `(L,)` (module docstring)."""
     out = np.zeros(len(x))
     for light, power in zip(lights, intensities):
-        v = light - x
-        d = np.linalg.norm(v, axis=1)
-        w = v / np.maximum(d, 1e-300)[:, None]
-        cos = np.sum(n * w, axis=1)
-        # Occlusion only between the point and the light: shorten the ray to length d.
-        idx = np.nonzero((cos > 0) & (d > 0))[0]
-        visible = idx[~caster.occluded_within(x[idx], w[idx], d[idx])]
-        out[visible] += albedo[visible] / np.pi * power * cos[visible] / d[visible] ** 2
+        out += power * direct_images(caster, x, n, albedo, light)
+    return out
+
+
+def direct_images(caster: RayCaster, x, n, rho, p, shade: bool = True) -> np.ndarray:
+    """`rho/pi max(0, n.w) / d^2 V(x, p)` per point `x (N, 3)` (normals `n`, albedo `rho`) for a unit
+    light at `p`, `(3,)` or one per point `(N, 3)` (eq. 4.11 with Embree's hard visibility, the
+    shadow ray shortened to length `d`: occlusion only between the point and the light);
+    `shade=False`: the visibility alone, `V(x, p)` where `n.w > 0`, else 0."""
+    v = np.asarray(p, np.float64) - x
+    d = np.linalg.norm(v, axis=-1)
+    w = v / np.maximum(d, 1e-300)[:, None]
+    cos = np.sum(n * w, axis=-1)
+    lit = np.nonzero((cos > 0) & (d > 0))[0]
+    visible = lit[~caster.occluded_within(x[lit], w[lit], d[lit])]
+    out = np.zeros(len(x))
+    out[visible] = rho[visible] / np.pi * cos[visible] / d[visible] ** 2 if shade else 1.0
     return out
 
 
