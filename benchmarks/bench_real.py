@@ -89,12 +89,9 @@ def synthetic(count: int, seed: int = 0):
 
 def sphere_pixels(mask, photo, saturated):
     """`(normals (N, 3), grey (N,), unsaturated (N,))` at the mask's pixels inside its fitted sphere."""
-    row, col, radius = hj.photo.fit_sphere(mask)
-    rr, cc = np.nonzero(mask)
-    x, y = (cc + 0.5 - col) / radius, -(rr + 0.5 - row) / radius
-    keep = x**2 + y**2 < 1
-    n = np.column_stack([x, y, np.sqrt(np.maximum(0, 1 - x**2 - y**2))])[keep]
-    return n, photo.mean(axis=-1)[rr, cc][keep], ~saturated[rr, cc][keep]
+    pixels, n, _ = hj.photo.sphere_normals(mask)
+    rr, cc = pixels.T
+    return n, photo.mean(axis=-1)[rr, cc], ~saturated[rr, cc]
 
 
 def lambertian_fit(mask, photo, saturated) -> np.ndarray:

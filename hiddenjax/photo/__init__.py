@@ -40,6 +40,7 @@ from ._capture import table_mask as table_mask
 from ._probe import Probe as Probe
 from ._probe import ProbeResult as ProbeResult
 from ._probe import fit_sphere as fit_sphere
+from ._probe import sphere_normals as sphere_normals
 from ._probe import measure_reflectance as measure_reflectance
 from ._plate import Plate as Plate
 from ._plate import clean_plate as clean_plate
