@@ -145,7 +145,9 @@ def fit_lights(
       (`smooth_shading`: vignetting, a tone curve's slope, a falloff the scene does not know) as if
       it were the reference photo, which places each light's direction; then `fit_falloff` places
       the lights in the photo's brightness (the lamp's falloff through a fitted tone curve and
-      vignetting) with those directions as a prior. For real photos without a reference. Default none.
+      vignetting) with those directions as a prior, its covariance widened by refits with the
+      objects' bounce light drawn again (the objects moved by half the `clearance`). For real
+      photos without a reference. Default none.
     - `box (2, 3)`: the region the search looks in without `init`, min and max corners in metres
       (default `default_box`, a few object sizes around the occluders).
 
@@ -218,7 +220,8 @@ def fit_lights(
     if shading == "smooth" and polish:  # the place along each shadow's valley from the brightness
         box_used = None if searched is None else searched.box
         prior = _with_placement(covariance, positions, scene, clearance)
-        found = fit_falloff(image, scene, shadows, positions, reference, prior, box=box_used)
+        found = fit_falloff(image, scene, shadows, positions, reference, prior, box=box_used,
+                            placement=0.5 * (clearance or 0.0))  # (the spread `_with_placement` gives the objects)
         positions, covariance = found.positions, found.covariance
         trajectory.append(positions)
     notes = _distrust(positions, a, float(scale), None if searched is None else searched.box)

@@ -6,7 +6,7 @@ along it hardly (a thin object's shadow is the same from near and far). The phot
 still holds the distance, in the lamp's falloff across the table, but a real photo shows it
 through the lens' vignetting and an unknown tone curve. Here the photo is modelled as
 
-    y = c (v(r) m(x))^beta,   m = sum_l I_l h_l(x) + a,   v(r) = exp(k1 r^2 + k2 r^4),
+    y = c (v(r) m(x))^beta,   m = sum_l I_l h_l(x) + a,   v(r) = exp(k1 r^2 + k2 r^4 + k3 r^6),
 
 with `h_l` the unit image of light `l` at the fitted pixels' centres: the direct light without
 the occluders (`rho/pi cos / d^2`: the falloff alone; the shadows' pixels, those of the photo
@@ -20,7 +20,7 @@ over the half-diagonal (vignetting is radial: it cannot mimic a lamp's falloff, 
 centred below the lamp), and `beta` the tone curve's power (`1/gamma`; 1 for a linear photo).
 Pixels at the photo's maximum (within `SATURATION`) are clipped and left out. Its log,
 
-    log y = log c + beta log m + k1' r^2 + k2' r^4        (k' = beta k; the first light's I is 1),
+    log y = log c + beta log m + k1' r^2 + k2' r^4 + k3' r^6     (k' = beta k; the first light's I is 1),
 
 is fitted by robust least squares (`soft_l1`, scale 0.1 in log radiance: what the shadows'
 trimming misses counts little) for each candidate position of one light along its ray from the
@@ -51,9 +51,20 @@ one Gauss-Newton step from the joint answer without it gives the falloff's own d
 `s0^2 > 1` that brings it there (the objects stand farther from their modelled places than the
 clearance says; the falloff does not depend on where they stand) and the fit is repeated. The
 positions' covariance is the Gauss-Newton one of the last fit, `(J^T D J)^-1` with `D` the
-robust loss' weights, marginalized over the tone curve, vignetting, ambient and intensity ratios.
+robust loss' weights, marginalized over the tone curve, vignetting, ambient and intensity ratios,
+plus the spread of the answer over the model's own errors, measured rather than assumed:
+`RESAMPLES` refits from the answer, each with the bounce light drawn again (new rays, every object
+moved across the receiver by a Gaussian offset of standard deviation `placement`),
+
+    C = (J^T D J)^-1 + cov_k(p_k),
+
+the sample covariance of the refits' positions `p_k`. The photo's noise is often far below the
+model's accuracy (a clean render's residual is 0.05% in log radiance), and at that level the bounce
+light's Monte Carlo error or an object's few millimetres move the lamp by a centimetre along the
+flat valley of its distance and the tone curve's power.
 """
 
+import copy
 from typing import NamedTuple
 
 import cv2
@@ -61,7 +72,7 @@ import numpy as np
 import scipy.optimize
 import scipy.stats
 
-from ..scene import Scene
+from ..scene import Scene, Surface
 from ..transport._embree import RayCaster
 from ._polish import diffuse_bounce, residual_correlation
 from ._search import _unit_images, occluder_centre
@@ -71,7 +82,9 @@ SHADOW_RATIO = 0.9  # a fitted pixel darker than this fraction of the photo's sm
 TONE_POWER = (0.25, 2.5)  # the tone curve's power beta searched in the joint fit (gamma 0.4-4)
 NOISE_ROUNDS = 4  # joint fits at most, each weighting the photo by the last one's residual
 SATURATION = 1e-3  # a pixel within this fraction of the photo's maximum is clipped
-BOUNCE_RAYS = 16  # cosine-distributed rays per pixel for the objects' bounce light
+VIGNETTING_TERMS = 3  # k1 r^2 + k2 r^4 + k3 r^6: two terms leave 2% at a corner of (1 - 0.35 r^2)
+BOUNCE_RAYS = 64  # cosine-distributed rays per pixel for the objects' bounce light (16 biased the distance 2 cm)
+RESAMPLES = 6  # refits with the bounce light drawn again, whose spread joins the covariance
 BOUNCE_BLUR = 2.0  # pixels: the bounce light's Monte Carlo estimate is smoothed over this (a Gaussian sigma)
 
 
@@ -79,7 +92,7 @@ class DistanceScan(NamedTuple):
     """Result of `scan_distances`: `positions (L, 3)`; per light the scanned `axes (L, 3)` (unit),
     `sigma (L,)` the standard deviation along it (the profile interval over 2 z), `interval (L, 2)` the
     `level` interval of `t` (metres from the start along the axis); `beta` the tone curve's power and
-    `vignetting (2,)` `(k1, k2)` at the end."""
+    `vignetting (3,)` `(k1, k2, k3)` at the end."""
 
     positions: np.ndarray
     axes: np.ndarray
@@ -97,11 +110,12 @@ def _radius2(pixels, shape) -> np.ndarray:
 
 class FalloffFit(NamedTuple):
     """Result of `fit_falloff`: `positions (L, 3)` metres and their `covariance (L, 3, 3)` (module
-    docstring); `beta` the tone curve's power and `vignetting (2,)` `(k1, k2)`; `correlation` the
+    docstring); `beta` the tone curve's power and `vignetting (3,)` `(k1, k2, k3)`; `correlation` the
     residual's correlation area `kappa` and `noise` its standard deviation `s` per pixel (log
     radiance) that weighted the photo against the prior; `prior_scale (L,)` the factor `s0^2 >= 1`
-    each shadow's direction covariance was widened by to agree with the falloff; `scan` the ray
-    scan that started it."""
+    each shadow's direction covariance was widened by to agree with the falloff; `resampled (L, 3,
+    3)` the part of `covariance` from the refits with the bounce light drawn again (`fit_falloff`'s
+    `resamples`); `scan` the ray scan that started it."""
 
     positions: np.ndarray
     covariance: np.ndarray
@@ -110,6 +124,7 @@ class FalloffFit(NamedTuple):
     correlation: float
     noise: float
     prior_scale: np.ndarray
+    resampled: np.ndarray
     scan: DistanceScan
 
 
@@ -135,12 +150,24 @@ class _Brightness:
         observed = [surface for surface in scene if surface.observe]
         self.caster = RayCaster(Scene(observed) if observed else scene)  # the falloff alone: no occluders
         self.anchor = occluder_centre(scene)
-        caster = RayCaster(scene)
-        x, n, rho = (np.asarray(a, np.float64)[self.keep] for a in (shadows.points, shadows.normals, shadows.albedo))
+        self.points = tuple(np.asarray(a, np.float64)[self.keep] for a in (shadows.points, shadows.normals,
+                                                                            shadows.albedo))
         self.start = np.array(positions, np.float64)
-        self.bounce = np.stack([self._smooth(diffuse_bounce(caster, x, n, rho, p, BOUNCE_RAYS, seed=k, bounces=2))
-                                for k, p in enumerate(self.start)], axis=1)
+        self.bounce = self.bounce_images(scene, 0)
         self._last = None
+
+    def bounce_images(self, scene: Scene, seed: int) -> np.ndarray:
+        """`(N, L)` the light the objects of `scene` throw back on the fitted pixels from each light at its
+        starting position: two diffuse bounces, `BOUNCE_RAYS` rays per pixel drawn from `seed`, smoothed."""
+        caster, (x, n, rho), L = RayCaster(scene), self.points, len(self.start)
+        return np.stack([self._smooth(diffuse_bounce(caster, x, n, rho, p, BOUNCE_RAYS, seed=seed * L + k, bounces=2))
+                         for k, p in enumerate(self.start)], axis=1)
+
+    def redrawn(self, scene: Scene, seed: int) -> "_Brightness":
+        """These pixels with the bounce light of `scene`'s objects drawn again from `seed`."""
+        out = copy.copy(self)
+        out.bounce, out._last = self.bounce_images(scene, seed), None
+        return out
 
     def _smooth(self, values: np.ndarray) -> np.ndarray:
         """A Gaussian of `BOUNCE_BLUR` pixels over the kept pixels (normalized convolution)."""
@@ -165,24 +192,27 @@ class _Brightness:
 
 
 def _log_residual(q, h, log_y, r2):
-    """`C + beta log(h @ w + a <h @ w>) + k1' r2 + k2' r2^2 - log y` for `q = [C, beta, k1', k2', a, q_2..q_L]`."""
+    """`C + beta log(h @ w + a <h @ w>) + k1' r2 + k2' r2^2 + k3' r2^3 - log y` for
+    `q = [C, beta, k1', k2', k3', a, q_2..q_L]`."""
     lit = h.sum(axis=1) > 0
     mean = float(np.mean(h[lit].sum(axis=1))) if lit.any() else 1.0
-    w = np.concatenate([[1.0], np.exp(np.clip(q[5:], -30, 30))])
-    m = h @ w + q[4] * mean * w.mean()
-    return q[0] + q[1] * np.log(np.maximum(m, 1e-6 * mean)) + q[2] * r2 + q[3] * r2**2 - log_y
+    V = VIGNETTING_TERMS
+    w = np.concatenate([[1.0], np.exp(np.clip(q[3 + V:], -30, 30))])
+    m = h @ w + q[2 + V] * mean * w.mean()
+    vignetting = sum(q[2 + k] * r2 ** (k + 1) for k in range(V))
+    return q[0] + q[1] * np.log(np.maximum(m, 1e-6 * mean)) + vignetting - log_y
 
 
 def _log_fit(h: np.ndarray, log_y: np.ndarray, r2: np.ndarray, start=None):
-    """Fit `log y ~ C + beta log(h @ w + a <h @ w>) + k1' r2 + k2' r2^2` (module docstring; `w_1 = 1`, the
+    """Fit `log y ~ C + beta log(h @ w + a <h @ w>) + k1' r2 + k2' r2^2 + k3' r2^3` (module docstring; `w_1 = 1`, the
     other lights' relative intensities `w_l = exp(q_l)`, `a` the ambient relative to the mean lit
-    radiance): `(params [C, beta, k1', k2', a, q_2..q_L], loss, residual)`."""
+    radiance): `(params [C, beta, k1', k2', k3', a, q_2..q_L], loss, residual)`."""
     L = h.shape[1]
     if start is None:
         lit = h.sum(axis=1) > 0
         floor = 1e-6 * (float(np.mean(h[lit].sum(axis=1))) if lit.any() else 1.0)
         start = np.concatenate([[np.median(log_y[lit]) - np.median(np.log(np.maximum(h[lit].sum(axis=1), floor))),
-                                 1.0, 0.0, 0.0, 0.05], np.zeros(L - 1)])
+                                 1.0], np.zeros(VIGNETTING_TERMS), [0.05], np.zeros(L - 1)])
     found = scipy.optimize.least_squares(_log_residual, start, loss="soft_l1", f_scale=LOG_SCALE, method="trf",
                                          x_scale="jac", max_nfev=200, args=(h, log_y, r2))
     return found.x, 2 * found.cost, found.fun
@@ -236,19 +266,19 @@ def _scan(b: _Brightness, positions, box, points: int, sweeps: int, level: float
             params, loss, residual = fits[best]
             columns[:, j] = images[:, best]
             positions[j] = positions[j] + t * e
-            s2 = float(loss) / max(len(residual) - (L + 4), 1)  # the robust loss per pixel, as the profile's
+            s2 = float(loss) / max(len(residual) - (L + 3 + VIGNETTING_TERMS), 1)  # the robust loss per pixel, as the profile's
             kappa = residual_correlation(residual, b.pixels, b.shape)
             inside = ts[(losses - losses.min()) / (s2 * kappa) <= scipy.stats.chi2.ppf(level, 1)]
             intervals[j] = [inside.min() - t - (ts[1] - ts[0]), inside.max() - t + (ts[1] - ts[0])]
             sigma[j] = (intervals[j, 1] - intervals[j, 0]) / (2 * scipy.stats.norm.ppf(0.5 + level / 2))
             axes[j] = e
     beta = float(params[1])
-    vignetting = params[2:4] / beta if beta != 0 else np.zeros(2)
+    vignetting = params[2:2 + VIGNETTING_TERMS] / beta if beta != 0 else np.zeros(VIGNETTING_TERMS)
     return DistanceScan(positions, axes, sigma, intervals, beta, vignetting), params, loss, residual
 
 
-def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=None, points: int = 25,
-                max_evaluations: int = 60) -> FalloffFit:
+def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=None, placement: float = 0.0,
+                resamples: int = RESAMPLES, points: int = 25, max_evaluations: int = 60) -> FalloffFit:
     """The lights' positions from the photo's brightness, the shadows' directions as a prior (module
     docstring): a scan along each light's ray from the occluders' centre through `positions (L, 3)`
     (`scan_distances`, one sweep), then the joint robust fit of all positions with the tone curve,
@@ -257,11 +287,18 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     `shadows` is the fit's `ShadowScene`, `shading (H, W[, C])` the photo's smooth shading
     (`smooth_shading`); `prior (L, 3, 3)` each light position's covariance from the shadows, of
     which the part across the ray, over the squared distance, is the direction's (the part along
-    it is not used); `box (2, 3)` bounds the positions.
+    it is not used); `box (2, 3)` bounds the positions. `placement` (metres) is the standard
+    deviation of each object's place across the receiver, and `resamples` the number of refits
+    with the objects' bounce light drawn again (new rays, the objects moved by `placement`) whose
+    spread joins the covariance (`FalloffFit.resampled`; 0: the Gauss-Newton covariance alone).
     """
     positions = np.array(positions, np.float64)
     L = len(positions)
     prior = np.asarray(prior, np.float64)
+    if not (np.isfinite(placement) and placement >= 0):
+        raise ValueError(f"placement must be a finite distance >= 0 in metres, got {placement}")
+    if int(resamples) != resamples or resamples < 0 or resamples == 1:
+        raise ValueError(f"resamples must be 0 or an integer >= 2 (a spread needs two refits), got {resamples}")
     if prior.shape != (L, 3, 3) or not np.all(np.isfinite(prior)):
         raise ValueError(f"prior must be one finite 3x3 covariance per light, shape {(L, 3, 3)}, got {prior.shape}")
     b = _Brightness(image, scene, shadows, positions, shading)
@@ -276,13 +313,13 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         directions.append(d)
         priors.append((vectors[:, 1:].T, np.maximum(values[1:], 1e-12)))  # (axes across it, their variances)
 
-    def photo_rows(z):
-        return _log_residual(z[:Q], b.images(z[Q:].reshape(L, 3), np.arange(L)), b.log_y, b.r2)
+    def photo_rows(z, brightness=b):
+        return _log_residual(z[:Q], brightness.images(z[Q:].reshape(L, 3), np.arange(L)), b.log_y, b.r2)
 
-    def residuals(z, weight):
+    def residuals(z, weight, brightness):
         v = z[Q:].reshape(L, 3) - b.anchor
         u = v / np.maximum(np.linalg.norm(v, axis=1), 1e-300)[:, None]
-        return np.concatenate([weight * photo_rows(z), *((E @ (u[l] - directions[l])) / np.sqrt(variances)
+        return np.concatenate([weight * photo_rows(z, brightness), *((E @ (u[l] - directions[l])) / np.sqrt(variances)
                                                          for l, (E, variances) in enumerate(priors))])
 
     def rows_loss(weight):  # soft_l1 on the photo's rows (scale LOG_SCALE in log radiance), squares on the prior's
@@ -304,6 +341,11 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         lower[Q:], upper[Q:] = np.tile(box[0], L), np.tile(box[1], L)
     z = np.clip(z, lower + 1e-9, upper - 1e-9)
     weight = None
+
+    def solve(start, weight, brightness=b):
+        return scipy.optimize.least_squares(residuals, start, loss=rows_loss(weight), method="trf", x_scale="jac",
+                                            bounds=(lower, upper), max_nfev=max_evaluations, args=(weight, brightness))
+
     for _ in range(NOISE_ROUNDS):  # the photo's noise and correlation area, from the last fit's residual
         noise = float(np.sqrt(loss / max(N - (Q + 1), 1)))
         kappa = residual_correlation(residual, b.pixels, b.shape)
@@ -311,8 +353,7 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         if weight is not None and abs(np.log(new / weight)) < np.log(1.1):
             break
         weight = new
-        found = scipy.optimize.least_squares(residuals, z, loss=rows_loss(weight), method="trf", x_scale="jac",
-                                             bounds=(lower, upper), max_nfev=max_evaluations, args=(weight,))
+        found = solve(z, weight)
         z, residual = found.x, photo_rows(found.x)
         loss = float(np.sum(2 * LOG_SCALE**2 * (np.sqrt(1 + (residual / LOG_SCALE) ** 2) - 1)))
     # The falloff alone, one Gauss-Newton step from the joint answer without the prior (at the optimum
@@ -331,16 +372,42 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         scales[l] = _prior_scale(E @ (u - directions[l]), C, np.diag(variances))
         priors[l] = E, variances * scales[l]
     if np.any(scales > 1):
-        found = scipy.optimize.least_squares(residuals, found.x, loss=rows_loss(weight), method="trf", x_scale="jac",
-                                             bounds=(lower, upper), max_nfev=max_evaluations, args=(weight,))
+        found = solve(found.x, weight)
     J = found.jac  # scaled by the robust loss: J^T J is the Gauss-Newton Hessian of the cost
     covariance = np.linalg.pinv(J.T @ J)[Q:, Q:]
+    resampled = np.zeros_like(covariance)
+    if resamples:  # the model's own error: the bounce light's rays and the objects' places drawn again
+        rng = np.random.default_rng(0)
+        draws = [solve(found.x, weight, b.redrawn(_moved_objects(scene, placement, b.points[1], rng), k + 1)).x[Q:]
+                 for k in range(int(resamples))]
+        resampled = np.cov(np.array(draws), rowvar=False)
+        covariance = covariance + resampled
     q = found.x[:Q]
     positions = found.x[Q:].reshape(L, 3)
     beta = float(q[1])
-    vignetting = q[2:4] / beta if beta != 0 else np.zeros(2)
-    blocks = np.stack([covariance[3 * l: 3 * l + 3, 3 * l: 3 * l + 3] for l in range(L)])
-    return FalloffFit(positions, blocks, beta, vignetting, float(kappa), noise, scales, scan)
+    vignetting = q[2:2 + VIGNETTING_TERMS] / beta if beta != 0 else np.zeros(VIGNETTING_TERMS)
+    blocks = lambda C: np.stack([C[3 * l: 3 * l + 3, 3 * l: 3 * l + 3] for l in range(L)])
+    return FalloffFit(positions, blocks(covariance), beta, vignetting, float(kappa), noise, scales,
+                      blocks(resampled), scan)
+
+
+def _moved_objects(scene: Scene, placement: float, normals, rng) -> Scene:
+    """`scene` with each object (a surface that is not observed) moved across the receiver (normal the
+    mean of `normals`) by a Gaussian offset of standard deviation `placement` along each axis."""
+    up = np.mean(normals, axis=0)
+    up = up / max(np.linalg.norm(up), 1e-300)
+    across = np.linalg.svd(np.eye(3) - np.outer(up, up))[0][:, :2]  # two unit axes in the receiver's plane
+    out = []
+    for surface in scene:
+        if not surface.observe and placement > 0:
+            mesh = surface.mesh.copy()
+            mesh.apply_translation(across @ rng.normal(0.0, placement, 2))
+            gloss = surface.gloss
+            surface = Surface(mesh, surface.albedo, observe=False, smooth=surface.smooth,
+                              roughness=None if gloss is None else gloss.roughness,
+                              ior=1.5 if gloss is None else gloss.ior)
+        out.append(surface)
+    return Scene(out)
 
 
 def _prior_scale(gap, falloff, prior) -> float:
