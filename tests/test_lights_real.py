@@ -220,11 +220,12 @@ def test_the_falloff_places_the_lamp_and_corrects_a_misread_shadow(faulty_desk, 
         sh.fit_falloff(photo, scene, shadows, start[None], shading, prior)
 
 
-def test_the_resampled_bounce_light_widens_the_covariance_to_hold_a_misplaced_cup(faulty_desk):
-    """The scene file puts the pencil and the cup 6 mm off their places: the cup's bounce light is
-    then modelled where it is not, and the lamp ends 9 mm low. The Gauss-Newton covariance alone
-    leaves the truth outside its 95% ellipsoid; the refits with the bounce light drawn again (new
-    rays, the objects moved by `placement`) add their spread, and hold it. Bad values are refused."""
+def test_the_refits_spread_grows_with_the_objects_placement_and_joins_the_covariance(faulty_desk):
+    """The scene file puts the pencil and the cup 6 mm off their places. The refits with the bounce
+    light drawn again (new rays, the objects moved by a Gaussian of `placement`) add their spread to
+    the Gauss-Newton covariance and nothing else: `covariance - resampled` is the covariance without
+    refits. The spread grows with `placement` (0, 2.5, 10 mm), and the lamp's true place lies inside
+    every 95% ellipsoid. Bad values are refused."""
     photo = faulty_desk[2]
     scene, camera = desk(offset=(0.006, 0.0, 0.0), size=(96, 72))
     shadows = sh.ShadowScene.from_scene(scene, camera, sh.object_clearance(scene, camera, 0.005))
@@ -234,17 +235,20 @@ def test_the_resampled_bounce_light_widens_the_covariance_to_hold_a_misplaced_cu
     direction = (LIGHT - anchor) / true
     start = anchor + 1.5 * true * direction
     prior = (np.radians(1.0) * 1.5 * true) ** 2 * (np.eye(3) - np.outer(direction, direction)) + np.outer(direction, direction)
-    level = scipy.stats.chi2.ppf(0.95, 3)
-    plain = sh.fit_falloff(photo, scene, shadows, start[None], shading, prior[None], resamples=0)
-    gap = plain.positions[0] - LIGHT
-    assert np.all(plain.resampled == 0) and gap @ np.linalg.solve(plain.covariance[0], gap) > level, gap
-    found = sh.fit_falloff(photo, scene, shadows, start[None], shading, prior[None], placement=0.0025)
-    gap = found.positions[0] - LIGHT
-    assert np.all(np.linalg.eigvalsh(found.resampled[0]) >= 0) and np.trace(found.resampled[0]) > 0
-    assert gap @ np.linalg.solve(found.covariance[0], gap) < level, (gap, found.covariance)
+    fit = lambda **kw: sh.fit_falloff(photo, scene, shadows, start[None], shading, prior[None], **kw)
+    plain = fit(resamples=0)
+    assert np.all(plain.resampled == 0)
+    spreads = []
+    for found in (plain, *(fit(placement=p) for p in (0.0, 0.0025, 0.01))):
+        np.testing.assert_allclose(found.covariance - found.resampled, plain.covariance, rtol=1e-9, atol=0)
+        assert np.all(np.linalg.eigvalsh(found.resampled[0]) >= -1e-15)
+        gap = found.positions[0] - LIGHT
+        assert gap @ np.linalg.solve(found.covariance[0], gap) < scipy.stats.chi2.ppf(0.95, 3), (gap, found.covariance)
+        spreads.append(np.trace(found.resampled[0]))
+    assert 0 == spreads[0] < spreads[1] < spreads[2] < spreads[3], spreads
     for bad, match in (({"placement": -0.001}, "placement must be"), ({"resamples": 1}, "resamples must be")):
         with pytest.raises(ValueError, match=match):
-            sh.fit_falloff(photo, scene, shadows, start[None], shading, prior[None], **bad)
+            fit(**bad)
 
 
 # ---- the command --------------------------------------------------------------------------------

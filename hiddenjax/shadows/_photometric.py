@@ -39,12 +39,15 @@ one joint robust fit of all the lights' positions and the parameters above, the 
 direction entering as a Gaussian prior on each light's direction `u = (p - c) / |p - c|` from the
 occluders' centre `c`:
 
-    min  sum_i rho(r_i / (s sqrt(kappa))) + sum_l |W_l (u_l - u0_l)|^2,
+    min  sum_i rho(r_i / (s_i sqrt(kappa))) + sum_l |W_l (u_l - u0_l)|^2,
 
-`r_i` the log residuals above, `rho` the robust loss, `s^2` their variance per pixel and `kappa`
-their correlation area at the scan's end, `W_l^T W_l` the inverse of the shadow's angular
-covariance across its ray (`prior`); `s` and `kappa` are taken again from each fit's residual
-until they settle (at most `NOISE_ROUNDS` fits). The prior is then checked against the photo:
+`r_i` the log residuals above, `rho` the robust loss, `s_i^2` their variance around pixel `i`
+(a Gaussian of `NOISE_WIDTH` pixels over the squared residuals, each clipped at the loss' scale:
+a photo's noise is not one level, two lamps sampled by a path tracer are quiet only where they
+light the desk equally, and a misfit near an object counts as that region's noise) and `kappa`
+the correlation area of `r_i / s_i`, both at the scan's end, `W_l^T W_l` the inverse of the
+shadow's angular covariance across its ray (`prior`); `s_i` and `kappa` are taken again from
+each fit's residual until they settle (at most `NOISE_ROUNDS` fits). The prior is then checked against the photo:
 one Gauss-Newton step from the joint answer without it gives the falloff's own direction
 `u_f` (covariance `C_f`), and where `g = u_f - u0` is farther than `g^T (C_f + C_0)^-1 g = 2`
 (the 2-degree-of-freedom chi-square at its mean) the shadow's covariance `C_0` is scaled by the
@@ -86,6 +89,7 @@ VIGNETTING_TERMS = 3  # k1 r^2 + k2 r^4 + k3 r^6: two terms leave 2% at a corner
 BOUNCE_RAYS = 64  # cosine-distributed rays per pixel for the objects' bounce light (16 biased the distance 2 cm)
 RESAMPLES = 6  # refits with the bounce light drawn again, whose spread joins the covariance
 BOUNCE_BLUR = 2.0  # pixels: the bounce light's Monte Carlo estimate is smoothed over this (a Gaussian sigma)
+NOISE_WIDTH = 8.0  # pixels: the photo's noise is measured over this (a Gaussian sigma of the squared residual)
 
 
 class DistanceScan(NamedTuple):
@@ -111,8 +115,8 @@ def _radius2(pixels, shape) -> np.ndarray:
 class FalloffFit(NamedTuple):
     """Result of `fit_falloff`: `positions (L, 3)` metres and their `covariance (L, 3, 3)` (module
     docstring); `beta` the tone curve's power and `vignetting (3,)` `(k1, k2, k3)`; `correlation` the
-    residual's correlation area `kappa` and `noise` its standard deviation `s` per pixel (log
-    radiance) that weighted the photo against the prior; `prior_scale (L,)` the factor `s0^2 >= 1`
+    residual's correlation area `kappa` and `noise` the median of its local standard deviation `s_i`
+    (log radiance) that weighted the photo against the prior; `prior_scale (L,)` the factor `s0^2 >= 1`
     each shadow's direction covariance was widened by to agree with the falloff; `resampled (L, 3,
     3)` the part of `covariance` from the refits with the bounce light drawn again (`fit_falloff`'s
     `resamples`); `scan` the ray scan that started it."""
@@ -160,7 +164,7 @@ class _Brightness:
         """`(N, L)` the light the objects of `scene` throw back on the fitted pixels from each light at its
         starting position: two diffuse bounces, `BOUNCE_RAYS` rays per pixel drawn from `seed`, smoothed."""
         caster, (x, n, rho), L = RayCaster(scene), self.points, len(self.start)
-        return np.stack([self._smooth(diffuse_bounce(caster, x, n, rho, p, BOUNCE_RAYS, seed=seed * L + k, bounces=2))
+        return np.stack([self.smoothed(diffuse_bounce(caster, x, n, rho, p, BOUNCE_RAYS, seed=seed * L + k, bounces=2))
                          for k, p in enumerate(self.start)], axis=1)
 
     def redrawn(self, scene: Scene, seed: int) -> "_Brightness":
@@ -169,12 +173,12 @@ class _Brightness:
         out.bounce, out._last = self.bounce_images(scene, seed), None
         return out
 
-    def _smooth(self, values: np.ndarray) -> np.ndarray:
-        """A Gaussian of `BOUNCE_BLUR` pixels over the kept pixels (normalized convolution)."""
+    def smoothed(self, values: np.ndarray, width: float = BOUNCE_BLUR) -> np.ndarray:
+        """A Gaussian of `width` pixels over the kept pixels (normalized convolution)."""
         H, W = self.shape
         image, weight = np.zeros(H * W), np.zeros(H * W)
         image[self.pixels], weight[self.pixels] = values, 1.0
-        blur = lambda a: cv2.GaussianBlur(a.reshape(H, W), (0, 0), BOUNCE_BLUR).reshape(-1)
+        blur = lambda a: cv2.GaussianBlur(a.reshape(H, W), (0, 0), width).reshape(-1)
         return (blur(image) / np.maximum(blur(weight), 1e-12))[self.pixels]
 
     def images(self, positions, lights) -> np.ndarray:
@@ -302,7 +306,7 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     if prior.shape != (L, 3, 3) or not np.all(np.isfinite(prior)):
         raise ValueError(f"prior must be one finite 3x3 covariance per light, shape {(L, 3, 3)}, got {prior.shape}")
     b = _Brightness(image, scene, shadows, positions, shading)
-    scan, params, loss, residual = _scan(b, positions, box, points, 1, 0.95)
+    scan, params, _, residual = _scan(b, positions, box, points, 1, 0.95)
     N, Q = len(b.log_y), len(params)
     directions, priors = [], []
     for p, S in zip(positions, prior):  # the shadow's direction and its angular covariance across the ray
@@ -347,15 +351,15 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
                                             bounds=(lower, upper), max_nfev=max_evaluations, args=(weight, brightness))
 
     for _ in range(NOISE_ROUNDS):  # the photo's noise and correlation area, from the last fit's residual
-        noise = float(np.sqrt(loss / max(N - (Q + 1), 1)))
-        kappa = residual_correlation(residual, b.pixels, b.shape)
-        new = 1.0 / (max(noise, 1e-9) * np.sqrt(kappa))
-        if weight is not None and abs(np.log(new / weight)) < np.log(1.1):
+        squares = b.smoothed(np.minimum(residual**2, LOG_SCALE**2), NOISE_WIDTH) * N / max(N - (Q + 1), 1)
+        local = np.sqrt(np.maximum(squares, 1e-18))  # the photo's noise s_i around each pixel
+        kappa = residual_correlation(residual / local, b.pixels, b.shape)
+        new = 1.0 / (local * np.sqrt(kappa))
+        if weight is not None and np.median(np.abs(np.log(new / weight))) < np.log(1.1):
             break
         weight = new
         found = solve(z, weight)
         z, residual = found.x, photo_rows(found.x)
-        loss = float(np.sum(2 * LOG_SCALE**2 * (np.sqrt(1 + (residual / LOG_SCALE) ** 2) - 1)))
     # The falloff alone, one Gauss-Newton step from the joint answer without the prior (at the optimum
     # the photo's gradient is minus the prior's, -J_p^T f_p). Where its direction and the shadow's
     # disagree by more than their covariances allow, the shadow's is widened until they agree (the
@@ -387,6 +391,7 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     beta = float(q[1])
     vignetting = q[2:2 + VIGNETTING_TERMS] / beta if beta != 0 else np.zeros(VIGNETTING_TERMS)
     blocks = lambda C: np.stack([C[3 * l: 3 * l + 3, 3 * l: 3 * l + 3] for l in range(L)])
+    noise = float(np.median(local))
     return FalloffFit(positions, blocks(covariance), beta, vignetting, float(kappa), noise, scales,
                       blocks(resampled), scan)
 
