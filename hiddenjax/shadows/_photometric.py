@@ -270,7 +270,7 @@ def _scan(b: _Brightness, positions, box, points: int, sweeps: int, level: float
             params, loss, residual = fits[best]
             columns[:, j] = images[:, best]
             positions[j] = positions[j] + t * e
-            s2 = float(loss) / max(len(residual) - (L + 3 + VIGNETTING_TERMS), 1)  # the robust loss per pixel, as the profile's
+            s2 = float(loss) / max(len(residual) - len(params), 1)  # the robust loss per pixel, as the profile's
             kappa = residual_correlation(residual, b.pixels, b.shape)
             inside = ts[(losses - losses.min()) / (s2 * kappa) <= scipy.stats.chi2.ppf(level, 1)]
             intervals[j] = [inside.min() - t - (ts[1] - ts[0]), inside.max() - t + (ts[1] - ts[0])]
