@@ -216,6 +216,7 @@ def test_the_falloff_places_the_lamp_and_corrects_a_misread_shadow(faulty_desk, 
     assert gap @ np.linalg.solve(found.covariance[0], gap) < scipy.stats.chi2.ppf(0.95, 3), (gap, found.covariance)
     assert (found.prior_scale[0] > 4) == (misread > 0), found.prior_scale
     assert abs(found.beta * 2.2 - 1) < 0.1, found.beta
+    assert found.converged
     with pytest.raises(ValueError, match="one finite 3x3 covariance per light"):
         sh.fit_falloff(photo, scene, shadows, start[None], shading, prior)
 
@@ -225,7 +226,8 @@ def test_the_refits_spread_grows_with_the_objects_placement_and_joins_the_covari
     light drawn again (new rays, the objects moved by a Gaussian of `placement`) add their spread to
     the Gauss-Newton covariance and nothing else: `covariance - resampled` is the covariance without
     refits. The spread grows with `placement` (0, 2.5, 10 mm), and the lamp's true place lies inside
-    every 95% ellipsoid. Bad values are refused."""
+    every 95% ellipsoid. A fit cut off at its evaluation limit says so (`converged`). Bad values are
+    refused."""
     photo = faulty_desk[2]
     scene, camera = desk(offset=(0.006, 0.0, 0.0), size=(96, 72))
     shadows = sh.ShadowScene.from_scene(scene, camera, sh.object_clearance(scene, camera, 0.005))
@@ -246,7 +248,9 @@ def test_the_refits_spread_grows_with_the_objects_placement_and_joins_the_covari
         assert gap @ np.linalg.solve(found.covariance[0], gap) < scipy.stats.chi2.ppf(0.95, 3), (gap, found.covariance)
         spreads.append(np.trace(found.resampled[0]))
     assert 0 == spreads[0] < spreads[1] < spreads[2] < spreads[3], spreads
-    for bad, match in (({"placement": -0.001}, "placement must be"), ({"resamples": 1}, "resamples must be")):
+    assert plain.converged and not fit(resamples=0, max_evaluations=2).converged
+    for bad, match in (({"placement": -0.001}, "placement must be"), ({"resamples": 1}, "resamples must be"),
+                       ({"max_evaluations": 0}, "max_evaluations must be")):
         with pytest.raises(ValueError, match=match):
             fit(**bad)
 
@@ -283,6 +287,9 @@ def test_lights_on_a_faulty_8bit_photo_of_any_size(tmp_path, capsys):
     assert angle < 2.5, (angle, found)
     assert abs(light["distance"] / np.linalg.norm(true) - 1) < 0.1, found
     assert light["angle_95"] > 0 and light["distance_95"][0] < light["distance"] < light["distance_95"][1]
+    response = found["camera_response"]  # the photo was encoded with gamma 2.2 and vignetted by 1 - 0.3 r^2
+    assert abs(response["gamma"] / 2.2 - 1) < 0.1 and response["vignetting"][0] < 0 and response["converged"], response
+    assert 0 <= response["refits_share"][0] < 1 and response["prior_scale"][0] >= 1, response
     assert "seen from the objects" in capsys.readouterr().out
     hj.io.write_png(tmp_path / "square.png", np.zeros((64, 64), np.uint8))
     assert main(["lights", str(tmp_path / "desk.toml"), str(tmp_path / "square.png"), "-o",

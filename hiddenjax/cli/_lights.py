@@ -25,7 +25,8 @@ def add_parsers(sub) -> None:
                                    "a polish on box-filtered shadows plus two diffuse bounces (thesis eq. 4.10-4.11).")
     p.add_argument("scene", help="TOML scene file (schema: docs/guide/scene-files.md); its observed surfaces are fitted")
     p.add_argument("image", help="the photo: " + IMAGE_HELP)
-    p.add_argument("-o", "--output", required=True, help="output .json: positions (m), intensities (W/sr), ambient")
+    p.add_argument("-o", "--output", required=True, help="output .json: positions (m), intensities (W/sr), ambient, "
+                   "each light as seen from the objects, the camera's fitted response")
     p.add_argument("--count", type=int, help="how many lights (default 1, or as many as --init gives)")
     p.add_argument("--init", type=float, nargs="+", metavar="X Y Z",
                    help="a guess: x y z metres per light; the search then looks within --reach of it")
@@ -153,7 +154,7 @@ def lights(args) -> dict:
     results = dict(positions=fit.positions.tolist(), intensities=fit.intensities.tolist(), ambient=fit.ambient,
                    channel_intensities=None if fit.channel_intensities is None else fit.channel_intensities.tolist(),
                    channel_ambient=None if fit.channel_ambient is None else fit.channel_ambient.tolist(),
-                   lights=seen, shading=shading, clearance=clearance, size=[camera.width, camera.height],
+                   lights=seen, camera_response=_response(fit.falloff), shading=shading, clearance=clearance, size=[camera.width, camera.height],
                    warnings=list(fit.warnings), relative_rms_residual=residual, residual_pixels=int(inner.sum()),
                    seconds=round(seconds, 2))
     if png is not None:
@@ -173,3 +174,12 @@ def lights(args) -> dict:
     print(f"ambient {fit.ambient:.4g}; residual {100 * residual:.1f}% RMS of the photo over {inner.sum()} pixels; "
           f"{seconds:.1f} s; wrote {out}" + (f" and {png}" if png else ""))
     return results
+
+
+def _response(falloff) -> dict | None:
+    """What the falloff fit read off the camera and how far it trusted the shadows (None without it)."""
+    if falloff is None:
+        return None
+    share = [float(np.trace(R) / max(np.trace(C), 1e-300)) for R, C in zip(falloff.resampled, falloff.covariance)]
+    return dict(tone_power=falloff.beta, gamma=1.0 / falloff.beta, vignetting=falloff.vignetting.tolist(),
+                prior_scale=falloff.prior_scale.tolist(), refits_share=share, converged=falloff.converged)

@@ -18,7 +18,7 @@ import optimistix as optx
 
 from ..scene import Camera, Scene
 from ._polish import polish_lights
-from ._photometric import fit_falloff
+from ._photometric import FalloffFit, fit_falloff
 from ._receiver import object_clearance, smooth_shading
 from ._search import _occluder_bounds, check_outside, hard_fit, occluder_centre, search_lights
 from ._shading import ShadowScene, light_images
@@ -41,7 +41,9 @@ class LightFit(NamedTuple):
     after the polish, `covariance (L, 3, 3)` each light position's (`polish_lights`; with
     `shading="smooth"` `fit_falloff`'s), else None;
     `warnings`: sentences about a fit to distrust (a negative ambient, a light at the search box's
-    edge), also issued as `UserWarning`s.
+    edge, a falloff fit stopped before it converged), also issued as `UserWarning`s; with
+    `shading="smooth"`, `falloff` the `FalloffFit` that placed the lights (the camera's tone curve and
+    vignetting, the prior's widening, the refits' share of the covariance), else None.
     """
 
     positions: np.ndarray
@@ -54,6 +56,7 @@ class LightFit(NamedTuple):
     channel_ambient: np.ndarray | None = None
     covariance: np.ndarray | None = None
     warnings: tuple = ()
+    falloff: FalloffFit | None = None
 
 
 def _residual(params, args):
@@ -211,7 +214,7 @@ def fit_lights(
         intensities, a = searched.intensities, searched.ambient
     elif reference is None:  # (with a reference the polish, which it requires, fits them)
         intensities, a, _ = hard_fit(image, scene, shadows, positions, ambient)
-    channels, covariance = (None, None), None
+    channels, covariance, found = (None, None), None, None
     if polish:
         polished = polish_lights(image, scene, camera, positions, ambient=ambient, mask=mask, reference=reference)
         positions, intensities, a = polished.positions, polished.intensities, polished.ambient
@@ -225,10 +228,14 @@ def fit_lights(
         positions, covariance = found.positions, found.covariance
         trajectory.append(positions)
     notes = _distrust(positions, a, float(scale), None if searched is None else searched.box)
+    if found is not None and not found.converged:
+        notes.append("the fit of the lamps' falloff stopped at its evaluation limit before it converged: the "
+                     "distances and their intervals are where it stopped, not at the best fit; a start near "
+                     "each lamp (--init) shortens the way")
     for note in notes:
         warnings.warn(note, stacklevel=2)
     return LightFit(positions, intensities, np.array(history), np.stack(trajectory), temps, a, *channels,
-                    covariance, tuple(notes))
+                    covariance, tuple(notes), found)
 
 
 def _with_placement(covariance, positions, scene: Scene, clearance):

@@ -119,7 +119,8 @@ class FalloffFit(NamedTuple):
     (log radiance) that weighted the photo against the prior; `prior_scale (L,)` the factor `s0^2 >= 1`
     each shadow's direction covariance was widened by to agree with the falloff; `resampled (L, 3,
     3)` the part of `covariance` from the refits with the bounce light drawn again (`fit_falloff`'s
-    `resamples`); `scan` the ray scan that started it."""
+    `resamples`); `converged` whether the last joint fit ended on its tolerance rather than at
+    `max_evaluations`; `scan` the ray scan that started it."""
 
     positions: np.ndarray
     covariance: np.ndarray
@@ -129,6 +130,7 @@ class FalloffFit(NamedTuple):
     noise: float
     prior_scale: np.ndarray
     resampled: np.ndarray
+    converged: bool
     scan: DistanceScan
 
 
@@ -282,7 +284,7 @@ def _scan(b: _Brightness, positions, box, points: int, sweeps: int, level: float
 
 
 def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=None, placement: float = 0.0,
-                resamples: int = RESAMPLES, points: int = 25, max_evaluations: int = 60) -> FalloffFit:
+                resamples: int = RESAMPLES, points: int = 25, max_evaluations: int = 200) -> FalloffFit:
     """The lights' positions from the photo's brightness, the shadows' directions as a prior (module
     docstring): a scan along each light's ray from the occluders' centre through `positions (L, 3)`
     (`scan_distances`, one sweep), then the joint robust fit of all positions with the tone curve,
@@ -295,12 +297,17 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     deviation of each object's place across the receiver, and `resamples` the number of refits
     with the objects' bounce light drawn again (new rays, the objects moved by `placement`) whose
     spread joins the covariance (`FalloffFit.resampled`; 0: the Gauss-Newton covariance alone).
+    `max_evaluations` bounds each joint fit (two lamps started 15 cm off need about 180); one that
+    stops there is reported (`FalloffFit.converged`), its covariance being that of a point that is
+    not the optimum.
     """
     positions = np.array(positions, np.float64)
     L = len(positions)
     prior = np.asarray(prior, np.float64)
     if not (np.isfinite(placement) and placement >= 0):
         raise ValueError(f"placement must be a finite distance >= 0 in metres, got {placement}")
+    if int(max_evaluations) != max_evaluations or max_evaluations < 1:
+        raise ValueError(f"max_evaluations must be an integer >= 1, got {max_evaluations}")
     if int(resamples) != resamples or resamples < 0 or resamples == 1:
         raise ValueError(f"resamples must be 0 or an integer >= 2 (a spread needs two refits), got {resamples}")
     if prior.shape != (L, 3, 3) or not np.all(np.isfinite(prior)):
@@ -393,7 +400,7 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     blocks = lambda C: np.stack([C[3 * l: 3 * l + 3, 3 * l: 3 * l + 3] for l in range(L)])
     noise = float(np.median(local))
     return FalloffFit(positions, blocks(covariance), beta, vignetting, float(kappa), noise, scales,
-                      blocks(resampled), scan)
+                      blocks(resampled), bool(found.status != 0), scan)
 
 
 def _moved_objects(scene: Scene, placement: float, normals, rng) -> Scene:
