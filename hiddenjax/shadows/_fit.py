@@ -227,7 +227,7 @@ def fit_lights(
                             placement=0.5 * (clearance or 0.0))  # (the spread `_with_placement` gives the objects)
         positions, covariance = found.positions, found.covariance
         trajectory.append(positions)
-    notes = _distrust(positions, a, float(scale), None if searched is None else searched.box)
+    notes = _distrust(positions, a, float(scale), None if searched is None else searched.box, shading == "smooth")
     if found is not None and not found.converged:
         notes.append("the fit of the lamps' falloff stopped at its evaluation limit before it converged: the "
                      "distances and their intervals are where it stopped, not at the best fit; a start near "
@@ -262,11 +262,18 @@ def _with_placement(covariance, positions, scene: Scene, clearance):
 AMBIENT_TOLERANCE = 0.01  # a fitted ambient below -1% of the photo's RMS brightness is a warning
 
 
-def _distrust(positions, ambient: float, brightness: float, box) -> list[str]:
+def _distrust(positions, ambient: float, brightness: float, box, smooth: bool = False) -> list[str]:
     """Sentences about a fit not to trust: a clearly negative ambient (below `-AMBIENT_TOLERANCE` of the
-    photo's RMS `brightness`), a light at the searched box's edge."""
+    photo's RMS `brightness`; `smooth`: of the shadows' fit against the photo's smooth shading), a
+    light at the searched box's edge."""
     notes = []
-    if ambient < -AMBIENT_TOLERANCE * brightness:
+    if smooth and ambient < -AMBIENT_TOLERANCE * brightness:
+        notes.append(f"the shadows' fit has a negative ambient ({ambient:.3g}, {100 * ambient / brightness:.0f}% of "
+                     "the photo's brightness): the shadows are deeper than the modelled lights and objects make "
+                     "them against the photo's smooth shading (an object the scene file lacks, more lamps than "
+                     "--count, or a shadow covering much of the receiver); the directions may be off by more than "
+                     "their cones")
+    elif ambient < -AMBIENT_TOLERANCE * brightness:
         notes.append(f"the fitted ambient is negative ({ambient:.3g}, {100 * ambient / brightness:.0f}% of the photo's "
                      "brightness): the model is brighter than the photo everywhere; a constant was taken off the photo "
                      "(its black level), it is not linear radiance (an 8-bit photo: --srgb, or --shading smooth), or "

@@ -10,8 +10,10 @@ through the lens' vignetting and an unknown tone curve. Here the photo is modell
 
 with `h_l` the unit image of light `l` at the fitted pixels' centres: the direct light without
 the occluders (`rho/pi cos / d^2`: the falloff alone; the shadows' pixels, those of the photo
-below `SHADOW_RATIO` of its smooth shading and two pixels around them, are left out: their place
-set the direction and must not pull the distance) plus the light the objects throw back on the
+below `SHADOW_RATIO` of its smooth shading, those in any light's hard shadow in the model with the
+lights at the given positions, and two pixels around them, are left out: their place set the
+direction and must not pull the distance; the photo's test alone misses a cup's shadow, which
+the smooth shading bends into, and one lamp's shadow lit by another) plus the light the objects throw back on the
 receiver (two diffuse bounces, `diffuse_bounce` with `BOUNCE_RAYS` rays per pixel at the starting
 positions, smoothed over `BOUNCE_BLUR` pixels and scaled by `(d0 / d)^2` with the light's
 distance `d` from the occluders' centre: a cup brightens the table around it by a few percent, a
@@ -52,8 +54,10 @@ one Gauss-Newton step from the joint answer without it gives the falloff's own d
 `u_f` (covariance `C_f`), and where `g = u_f - u0` is farther than `g^T (C_f + C_0)^-1 g = 2`
 (the 2-degree-of-freedom chi-square at its mean) the shadow's covariance `C_0` is scaled by the
 `s0^2 > 1` that brings it there (the objects stand farther from their modelled places than the
-clearance says; the falloff does not depend on where they stand) and the fit is repeated. The
-positions' covariance is the Gauss-Newton one of the last fit, `(J^T D J)^-1` with `D` the
+clearance says; the falloff does not depend on where they stand) and the fit is repeated.
+Where the fitted lights' modelled shadows leave out other pixels than the starting ones did, the
+pixels (and the bounce light, at the fitted positions) are taken again and the fit settled once
+more from its answer. The positions' covariance is the Gauss-Newton one of the last fit, `(J^T D J)^-1` with `D` the
 robust loss' weights, marginalized over the tone curve, vignetting, ambient and intensity ratios,
 plus the spread of the answer over the model's own errors, measured rather than assumed:
 `RESAMPLES` refits from the answer, each with the bounce light drawn again (new rays, every object
@@ -143,8 +147,13 @@ class _Brightness:
         u = np.asarray(shadows.image_to_rows(shading), np.float64)
         H, W = self.shape = shadows.image_shape
         fitted = np.asarray(shadows.pixels)
+        observed = [surface for surface in scene if surface.observe]
+        self.caster = RayCaster(Scene(observed) if observed else scene)  # the falloff alone: no occluders
+        positions = np.array(positions, np.float64)
+        bare = _unit_images(self.caster, shadows, positions)
+        modelled = np.any((bare > 0) & (_unit_images(RayCaster(scene), shadows, positions) < 0.5 * bare), axis=0)
         dark = np.zeros(H * W, np.uint8)
-        dark[fitted[y < SHADOW_RATIO * u]] = 1
+        dark[fitted[(y < SHADOW_RATIO * u) | modelled]] = 1
         dark = cv2.dilate(dark.reshape(H, W), np.ones((5, 5), np.uint8)).reshape(-1).astype(bool)
         top = float(np.max(np.asarray(image)))
         self.keep = (y > 0) & ~dark[fitted] & (y < (1 - SATURATION) * top)
@@ -153,12 +162,10 @@ class _Brightness:
                              "read from its brightness")
         self.shadows, self.pixels = shadows, fitted[self.keep]
         self.log_y, self.r2 = np.log(y[self.keep]), _radius2(self.pixels, self.shape)
-        observed = [surface for surface in scene if surface.observe]
-        self.caster = RayCaster(Scene(observed) if observed else scene)  # the falloff alone: no occluders
         self.anchor = occluder_centre(scene)
         self.points = tuple(np.asarray(a, np.float64)[self.keep] for a in (shadows.points, shadows.normals,
                                                                             shadows.albedo))
-        self.start = np.array(positions, np.float64)
+        self.start = positions
         self.bounce = self.bounce_images(scene, 0)
         self._last = None
 
@@ -314,18 +321,20 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         raise ValueError(f"prior must be one finite 3x3 covariance per light, shape {(L, 3, 3)}, got {prior.shape}")
     b = _Brightness(image, scene, shadows, positions, shading)
     scan, params, _, residual = _scan(b, positions, box, points, 1, 0.95)
-    N, Q = len(b.log_y), len(params)
-    directions, priors = [], []
+    Q = len(params)
+    directions, shadow_priors = [], []
     for p, S in zip(positions, prior):  # the shadow's direction and its angular covariance across the ray
         v = p - b.anchor
         d = v / max(np.linalg.norm(v), 1e-300)
         across = (np.eye(3) - np.outer(d, d)) @ S @ (np.eye(3) - np.outer(d, d)) / max(v @ v, 1e-300)
         values, vectors = np.linalg.eigh(across)  # the smallest is the ray itself
         directions.append(d)
-        priors.append((vectors[:, 1:].T, np.maximum(values[1:], 1e-12)))  # (axes across it, their variances)
+        shadow_priors.append((vectors[:, 1:].T, np.maximum(values[1:], 1e-12)))  # (axes across it, variances)
+    priors = list(shadow_priors)
 
-    def photo_rows(z, brightness=b):
-        return _log_residual(z[:Q], brightness.images(z[Q:].reshape(L, 3), np.arange(L)), b.log_y, b.r2)
+    def photo_rows(z, brightness):
+        return _log_residual(z[:Q], brightness.images(z[Q:].reshape(L, 3), np.arange(L)), brightness.log_y,
+                             brightness.r2)
 
     def residuals(z, weight, brightness):
         v = z[Q:].reshape(L, 3) - b.anchor
@@ -334,7 +343,7 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
                                                          for l, (E, variances) in enumerate(priors))])
 
     def rows_loss(weight):  # soft_l1 on the photo's rows (scale LOG_SCALE in log radiance), squares on the prior's
-        c2 = (LOG_SCALE * weight) ** 2
+        c2, N = (LOG_SCALE * weight) ** 2, len(weight)
 
         def loss(z):
             out = np.empty((3, len(z)))
@@ -351,39 +360,49 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     if box is not None:
         lower[Q:], upper[Q:] = np.tile(box[0], L), np.tile(box[1], L)
     z = np.clip(z, lower + 1e-9, upper - 1e-9)
-    weight = None
 
-    def solve(start, weight, brightness=b):
+    def solve(start, weight, brightness):
         return scipy.optimize.least_squares(residuals, start, loss=rows_loss(weight), method="trf", x_scale="jac",
                                             bounds=(lower, upper), max_nfev=max_evaluations, args=(weight, brightness))
 
-    for _ in range(NOISE_ROUNDS):  # the photo's noise and correlation area, from the last fit's residual
-        squares = b.smoothed(np.minimum(residual**2, LOG_SCALE**2), NOISE_WIDTH) * N / max(N - (Q + 1), 1)
-        local = np.sqrt(np.maximum(squares, 1e-18))  # the photo's noise s_i around each pixel
-        kappa = residual_correlation(residual / local, b.pixels, b.shape)
-        new = 1.0 / (local * np.sqrt(kappa))
-        if weight is not None and np.median(np.abs(np.log(new / weight))) < np.log(1.1):
-            break
-        weight = new
-        found = solve(z, weight)
-        z, residual = found.x, photo_rows(found.x)
-    # The falloff alone, one Gauss-Newton step from the joint answer without the prior (at the optimum
-    # the photo's gradient is minus the prior's, -J_p^T f_p). Where its direction and the shadow's
-    # disagree by more than their covariances allow, the shadow's is widened until they agree (the
-    # objects stand farther from their modelled places than the clearance says), and the fit repeated.
-    J, f = found.jac, found.fun
-    alone = np.linalg.pinv(J[:N].T @ J[:N], hermitian=True)
-    z_alone = found.x + alone @ (J[N:].T @ f[N:])
-    scales = np.ones(L)
-    for l, (E, variances) in enumerate(priors):  # in the plane across the shadow's direction
-        v = z_alone[Q + 3 * l: Q + 3 * l + 3] - b.anchor
-        u = v / max(np.linalg.norm(v), 1e-300)
-        across = (np.eye(3) - np.outer(u, u)) / max(np.linalg.norm(v), 1e-300)
-        C = E @ across @ alone[Q + 3 * l: Q + 3 * l + 3, Q + 3 * l: Q + 3 * l + 3] @ across.T @ E.T
-        scales[l] = _prior_scale(E @ (u - directions[l]), C, np.diag(variances))
-        priors[l] = E, variances * scales[l]
-    if np.any(scales > 1):
-        found = solve(found.x, weight)
+    def settle(b, z, residual):
+        """The joint fit on `b`'s pixels from `z`: the noise rounds, then the prior's check."""
+        N, weight = len(b.log_y), None
+        priors[:] = shadow_priors
+        for _ in range(NOISE_ROUNDS):  # the photo's noise and correlation area, from the last fit's residual
+            squares = b.smoothed(np.minimum(residual**2, LOG_SCALE**2), NOISE_WIDTH) * N / max(N - (Q + 1), 1)
+            local = np.sqrt(np.maximum(squares, 1e-18))  # the photo's noise s_i around each pixel
+            kappa = residual_correlation(residual / local, b.pixels, b.shape)
+            new = 1.0 / (local * np.sqrt(kappa))
+            if weight is not None and np.median(np.abs(np.log(new / weight))) < np.log(1.1):
+                break
+            weight = new
+            found = solve(z, weight, b)
+            z, residual = found.x, photo_rows(found.x, b)
+        # The falloff alone, one Gauss-Newton step from the joint answer without the prior (at the optimum
+        # the photo's gradient is minus the prior's, -J_p^T f_p). Where its direction and the shadow's
+        # disagree by more than their covariances allow, the shadow's is widened until they agree (the
+        # objects stand farther from their modelled places than the clearance says), and the fit repeated.
+        J, f = found.jac, found.fun
+        alone = np.linalg.pinv(J[:N].T @ J[:N], hermitian=True)
+        z_alone = found.x + alone @ (J[N:].T @ f[N:])
+        scales = np.ones(L)
+        for l, (E, variances) in enumerate(priors):  # in the plane across the shadow's direction
+            v = z_alone[Q + 3 * l: Q + 3 * l + 3] - b.anchor
+            u = v / max(np.linalg.norm(v), 1e-300)
+            across = (np.eye(3) - np.outer(u, u)) / max(np.linalg.norm(v), 1e-300)
+            C = E @ across @ alone[Q + 3 * l: Q + 3 * l + 3, Q + 3 * l: Q + 3 * l + 3] @ across.T @ E.T
+            scales[l] = _prior_scale(E @ (u - directions[l]), C, np.diag(variances))
+            priors[l] = E, variances * scales[l]
+        if np.any(scales > 1):
+            found = solve(found.x, weight, b)
+        return found, weight, local, kappa, scales
+
+    found, weight, local, kappa, scales = settle(b, z, residual)
+    moved = _Brightness(image, scene, shadows, found.x[Q:].reshape(L, 3), shading)
+    if not np.array_equal(moved.pixels, b.pixels):  # the found lights shadow other pixels than the start's
+        b = moved
+        found, weight, local, kappa, scales = settle(b, found.x, photo_rows(found.x, b))
     J = found.jac  # scaled by the robust loss: J^T J is the Gauss-Newton Hessian of the cost
     covariance = np.linalg.pinv(J.T @ J)[Q:, Q:]
     resampled = np.zeros_like(covariance)
