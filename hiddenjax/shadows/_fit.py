@@ -267,17 +267,16 @@ def _distrust(positions, ambient: float, brightness: float, box, smooth: bool = 
     photo's RMS `brightness`; `smooth`: of the shadows' fit against the photo's smooth shading), a
     light at the searched box's edge."""
     notes = []
-    if smooth and ambient < -AMBIENT_TOLERANCE * brightness:
-        notes.append(f"the shadows' fit has a negative ambient ({ambient:.3g}, {100 * ambient / brightness:.0f}% of "
-                     "the photo's brightness): the shadows are deeper than the modelled lights and objects make "
-                     "them against the photo's smooth shading (an object the scene file lacks, more lamps than "
-                     "--count, or a shadow covering much of the receiver); the directions may be off by more than "
-                     "their cones")
-    elif ambient < -AMBIENT_TOLERANCE * brightness:
-        notes.append(f"the fitted ambient is negative ({ambient:.3g}, {100 * ambient / brightness:.0f}% of the photo's "
-                     "brightness): the model is brighter than the photo everywhere; a constant was taken off the photo "
-                     "(its black level), it is not linear radiance (an 8-bit photo: --srgb, or --shading smooth), or "
-                     "it lacks the interreflections the polish adds (a direct-light render)")
+    if ambient < -AMBIENT_TOLERANCE * brightness:
+        share = f"({ambient:.3g}, {100 * ambient / brightness:.0f}% of the photo's brightness)"
+        notes.append(f"the shadows' fit has a negative ambient {share}: the shadows are deeper than the modelled "
+                     "lights and objects make them against the photo's smooth shading (an object the scene file "
+                     "lacks, more lamps than --count, or a shadow covering much of the receiver); the directions may "
+                     "be off by more than their cones" if smooth else
+                     f"the fitted ambient is negative {share}: the model is brighter than the photo everywhere; a "
+                     "constant was taken off the photo (its black level), it is not linear radiance (an 8-bit photo: "
+                     "--srgb, or --shading smooth), or it lacks the interreflections the polish adds (a direct-light "
+                     "render)")
     if box is not None:
         size = box[1] - box[0]
         near = np.any((positions - box[0] < 0.02 * size) | (box[1] - positions < 0.02 * size), axis=1)

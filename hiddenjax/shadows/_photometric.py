@@ -143,31 +143,39 @@ class _Brightness:
     objects' bounce light (module docstring)."""
 
     def __init__(self, image, scene: Scene, shadows, positions, shading):
-        y = np.asarray(shadows.image_to_rows(image), np.float64)
-        u = np.asarray(shadows.image_to_rows(shading), np.float64)
-        H, W = self.shape = shadows.image_shape
-        fitted = np.asarray(shadows.pixels)
+        self.y = np.asarray(shadows.image_to_rows(image), np.float64)
+        self.u = np.asarray(shadows.image_to_rows(shading), np.float64)
+        self.top = float(np.max(np.asarray(image)))
+        self.shape, self.shadows = shadows.image_shape, shadows
         observed = [surface for surface in scene if surface.observe]
         self.caster = RayCaster(Scene(observed) if observed else scene)  # the falloff alone: no occluders
+        self.occluded = RayCaster(scene)
         positions = np.array(positions, np.float64)
-        bare = _unit_images(self.caster, shadows, positions)
-        modelled = np.any((bare > 0) & (_unit_images(RayCaster(scene), shadows, positions) < 0.5 * bare), axis=0)
-        dark = np.zeros(H * W, np.uint8)
-        dark[fitted[(y < SHADOW_RATIO * u) | modelled]] = 1
-        dark = cv2.dilate(dark.reshape(H, W), np.ones((5, 5), np.uint8)).reshape(-1).astype(bool)
-        top = float(np.max(np.asarray(image)))
-        self.keep = (y > 0) & ~dark[fitted] & (y < (1 - SATURATION) * top)
+        self.keep = self.kept(positions)
         if self.keep.sum() < 20:
             raise ValueError("the photo is black, shadowed or clipped over the fitted pixels: no distance can be "
                              "read from its brightness")
-        self.shadows, self.pixels = shadows, fitted[self.keep]
-        self.log_y, self.r2 = np.log(y[self.keep]), _radius2(self.pixels, self.shape)
+        self.pixels = np.asarray(shadows.pixels)[self.keep]
+        self.log_y, self.r2 = np.log(self.y[self.keep]), _radius2(self.pixels, self.shape)
         self.anchor = occluder_centre(scene)
         self.points = tuple(np.asarray(a, np.float64)[self.keep] for a in (shadows.points, shadows.normals,
                                                                             shadows.albedo))
         self.start = positions
         self.bounce = self.bounce_images(scene, 0)
         self._last = None
+
+    def kept(self, positions) -> np.ndarray:
+        """`(P,)` which fitted pixels the fit uses with the lights at `positions`: lit, not clipped, and two
+        pixels or more from the photo's shadows (below `SHADOW_RATIO` of its smooth shading) and from
+        every light's hard shadow in the model."""
+        H, W = self.shape
+        fitted = np.asarray(self.shadows.pixels)
+        bare = _unit_images(self.caster, self.shadows, positions)
+        modelled = np.any((bare > 0) & (_unit_images(self.occluded, self.shadows, positions) < 0.5 * bare), axis=0)
+        dark = np.zeros(H * W, np.uint8)
+        dark[fitted[(self.y < SHADOW_RATIO * self.u) | modelled]] = 1
+        dark = cv2.dilate(dark.reshape(H, W), np.ones((5, 5), np.uint8)).reshape(-1).astype(bool)
+        return (self.y > 0) & ~dark[fitted] & (self.y < (1 - SATURATION) * self.top)
 
     def bounce_images(self, scene: Scene, seed: int) -> np.ndarray:
         """`(N, L)` the light the objects of `scene` throw back on the fitted pixels from each light at its
@@ -399,9 +407,8 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         return found, weight, local, kappa, scales
 
     found, weight, local, kappa, scales = settle(b, z, residual)
-    moved = _Brightness(image, scene, shadows, found.x[Q:].reshape(L, 3), shading)
-    if not np.array_equal(moved.pixels, b.pixels):  # the found lights shadow other pixels than the start's
-        b = moved
+    if not np.array_equal(b.kept(found.x[Q:].reshape(L, 3)), b.keep):  # the found lights shadow other pixels
+        b = _Brightness(image, scene, shadows, found.x[Q:].reshape(L, 3), shading)
         found, weight, local, kappa, scales = settle(b, found.x, photo_rows(found.x, b))
     J = found.jac  # scaled by the robust loss: J^T J is the Gauss-Newton Hessian of the cost
     covariance = np.linalg.pinv(J.T @ J)[Q:, Q:]
