@@ -161,7 +161,7 @@ class _Brightness:
         self.points = tuple(np.asarray(a, np.float64)[self.keep] for a in (shadows.points, shadows.normals,
                                                                             shadows.albedo))
         self.start = positions
-        self.bounce = self.bounce_images(scene, 0)
+        self.bounce = self.bounce_images(self.occluded, 0)
         self._last = None
 
     def kept(self, positions) -> np.ndarray:
@@ -177,17 +177,18 @@ class _Brightness:
         dark = cv2.dilate(dark.reshape(H, W), np.ones((5, 5), np.uint8)).reshape(-1).astype(bool)
         return (self.y > 0) & ~dark[fitted] & (self.y < (1 - SATURATION) * self.top)
 
-    def bounce_images(self, scene: Scene, seed: int) -> np.ndarray:
-        """`(N, L)` the light the objects of `scene` throw back on the fitted pixels from each light at its
-        starting position: two diffuse bounces, `BOUNCE_RAYS` rays per pixel drawn from `seed`, smoothed."""
-        caster, (x, n, rho), L = RayCaster(scene), self.points, len(self.start)
+    def bounce_images(self, caster: RayCaster, seed: int) -> np.ndarray:
+        """`(N, L)` the light the objects of a scene (its `caster`) throw back on the fitted pixels from each
+        light at its starting position: two diffuse bounces, `BOUNCE_RAYS` rays per pixel drawn from `seed`,
+        smoothed."""
+        (x, n, rho), L = self.points, len(self.start)
         return np.stack([self.smoothed(diffuse_bounce(caster, x, n, rho, p, BOUNCE_RAYS, seed=seed * L + k, bounces=2))
                          for k, p in enumerate(self.start)], axis=1)
 
     def redrawn(self, scene: Scene, seed: int) -> "_Brightness":
         """These pixels with the bounce light of `scene`'s objects drawn again from `seed`."""
         out = copy.copy(self)
-        out.bounce, out._last = self.bounce_images(scene, seed), None
+        out.bounce, out._last = self.bounce_images(RayCaster(scene), seed), None
         return out
 
     def smoothed(self, values: np.ndarray, width: float = BOUNCE_BLUR) -> np.ndarray:
