@@ -179,6 +179,25 @@ def test_interreflections_inside_a_sphere_add_the_albedo_per_bounce(bounces):
         hj.render_point_lights(hj.Scene([hj.Surface(sphere, rho)]), camera, [[0.0, 0.001, 0.0]], bounces=3)
 
 
+def test_stratified_interreflections_keep_the_mean_and_cut_the_spread():
+    """The table's bounce light next to the cup (the cup's edge crosses each point's hemisphere), 200
+    draws of 64 rays per point: stratified and independent rays agree in the mean within four standard
+    errors, and the stratified draws' variance is below 0.6 of the independent ones' (0.3-0.5 measured)."""
+    from hiddenjax.shadows._polish import diffuse_bounce
+    from hiddenjax.transport._embree import RayCaster
+
+    scene, _ = desk()
+    caster = RayCaster(scene)
+    x = np.array([[0.08 + 0.03 + d, 0.0005, 0.05] for d in (0.005, 0.01, 0.02, 0.04)])
+    n, rho = np.tile([0.0, 1.0, 0.0], (4, 1)), np.full(4, 0.6)
+    draws = {s: np.array([diffuse_bounce(caster, x, n, rho, LIGHT, 64, seed, bounces=1, stratified=s)
+                          for seed in range(200)]) for s in (False, True)}
+    mean = {s: d.mean(axis=0) for s, d in draws.items()}
+    error = np.sqrt((draws[False].var(axis=0, ddof=1) + draws[True].var(axis=0, ddof=1)) / 200)
+    assert np.all(mean[False] > 0) and np.all(np.abs(mean[True] - mean[False]) < 4 * error), (mean, error)
+    assert np.all(draws[True].var(axis=0) < 0.6 * draws[False].var(axis=0)), {s: d.var(axis=0) for s, d in draws.items()}
+
+
 @pytest.fixture(scope="module")
 def faulty_desk():
     """An Embree photo of the desk under one lamp (box-filtered over 9 footprint points per pixel, plus
@@ -288,8 +307,8 @@ def test_lights_on_a_faulty_8bit_photo_of_any_size(tmp_path, capsys):
     assert angle < 2.5, (angle, found)
     assert abs(light["distance"] / np.linalg.norm(true) - 1) < 0.1, found
     assert light["angle_95"] > 0 and light["distance_95"][0] < light["distance"] < light["distance_95"][1]
-    response = found["camera_response"]  # the photo was encoded with gamma 2.2 and vignetted by 1 - 0.3 r^2
-    assert abs(response["gamma"] / 2.2 - 1) < 0.1 and response["vignetting"][0] < 0 and response["converged"], response
+    response = found["camera_response"]  # the photo was encoded with gamma 2.0 and vignetted by 1 - 0.3 r^2
+    assert abs(response["gamma"] / 2.0 - 1) < 0.1 and response["vignetting"][0] < 0 and response["converged"], response
     assert 0 <= response["refits_share"][0] < 1 and response["prior_scale"][0] >= 1, response
     assert "seen from the objects" in capsys.readouterr().out
     hj.io.write_png(tmp_path / "square.png", np.zeros((64, 64), np.uint8))

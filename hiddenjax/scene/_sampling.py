@@ -22,9 +22,12 @@ def stratified_square(rng: np.random.Generator, count: int, samples: int, dtype=
     return offset + rng.random((count, samples, 2), dtype=dtype) * scale
 
 
-def cosine_directions(normals: np.ndarray, rng) -> np.ndarray:
-    """One cosine-distributed direction about each unit normal `(n, 3)` (Malley's method)."""
-    u = rng.random((len(normals), 2))
+def cosine_directions(normals: np.ndarray, rng, square: np.ndarray | None = None) -> np.ndarray:
+    """One cosine-distributed direction about each unit normal `(n, 3)` (Malley's method): the point
+    `u` of the unit square (uniform from `rng`, or the given `square (n, 2)`) maps to the disc point
+    `sqrt(u0) (cos 2 pi u1, sin 2 pi u1)` lifted to the hemisphere, so that strata of the square are
+    strata of the projected solid angle."""
+    u = rng.random((len(normals), 2)) if square is None else np.asarray(square, np.float64)
     r, phi = np.sqrt(u[:, 0]), 2 * np.pi * u[:, 1]
     local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - u[:, 0]))], -1)
     helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])

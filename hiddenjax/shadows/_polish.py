@@ -142,11 +142,13 @@ class _Footprints:
         return diffuse_bounce(caster, self.x, self.n, self.rho, p, rays, seed, bounces).reshape(-1, self.S).mean(axis=1)
 
 
-def diffuse_bounce(caster: RayCaster, x, n, rho, p, rays: int, seed: int, bounces: int = 1) -> np.ndarray:
+def diffuse_bounce(caster: RayCaster, x, n, rho, p, rays: int, seed: int, bounces: int = 1,
+                   stratified: bool = False) -> np.ndarray:
     """`(N,)` the diffuse interreflections at points `x (N, 3)` (normals `n`, albedo `rho`) of a unit
-    light at `p (3,)`, up to `bounces` (1 or 2), `rays` cosine-distributed rays per point
-    (`interreflected`: a path-traced estimate)."""
-    return interreflected(caster, x, n, rho, np.asarray(p, np.float64)[None], np.ones(1), rays, seed, bounces)
+    light at `p (3,)`, up to `bounces` (1 or 2), `rays` cosine-distributed rays per point, `stratified`
+    or not (`interreflected`: a path-traced estimate)."""
+    return interreflected(caster, x, n, rho, np.asarray(p, np.float64)[None], np.ones(1), rays, seed, bounces,
+                          stratified)
 
 
 def _fit_channels(columns: np.ndarray, Y: np.ndarray, ambient: bool, gain: np.ndarray | None = None):

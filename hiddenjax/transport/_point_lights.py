@@ -13,7 +13,7 @@ import copy
 import numpy as np
 
 from ..scene import Camera, MeasuredReflectance, Scene, SpecularLobe
-from ..scene._sampling import cosine_directions
+from ..scene._sampling import cosine_directions, stratified_square
 from ._build import _Points
 from ._embree import RayCaster, pixel_centre_hits, primary_hits
 from ._matrix import TransportMatrix
@@ -82,21 +82,25 @@ def direct_images(caster: RayCaster, x, n, rho, p, shade: bool = True) -> np.nda
 
 
 def interreflected(caster: RayCaster, x, n, albedo, lights, intensities, rays: int, seed: int,
-                   bounces: int = 1) -> np.ndarray:
+                   bounces: int = 1, stratified: bool = False) -> np.ndarray:
     """`(N,)` the diffuse interreflections at points `x (N, 3)` under point lights, up to `bounces` (1 or
     2): `rays` cosine-distributed rays per point to the surfaces `z` they hit, each lit directly
     (`direct_light`) and, for a second bounce, through one more cosine-distributed ray; the reflected
-    radiance is `rho/K sum_k L(z_k)` (cosine-distributed rays: `E = pi/K sum L`)."""
+    radiance is `rho/K sum_k L(z_k)` (cosine-distributed rays: `E = pi/K sum L`). `stratified`: each
+    point's first rays come one from each cell of a jittered grid over the square Malley's method maps
+    (`stratified_square`), still unbiased and far quieter where an object's edge crosses the
+    hemisphere (its variance falls as `K^-1.5` there, not `K^-1`)."""
     rng = np.random.default_rng(seed)
     repeated = np.repeat(np.asarray(x, np.float64), rays, axis=0), np.repeat(np.asarray(n, np.float64), rays, axis=0)
-    radiance = _arriving(caster, *repeated, lights, intensities, rng, bounces)
+    square = stratified_square(rng, len(x), rays).reshape(-1, 2) if stratified else None
+    radiance = _arriving(caster, *repeated, lights, intensities, rng, bounces, square)
     return np.asarray(albedo, np.float64) * radiance.reshape(-1, rays).mean(axis=1)
 
 
-def _arriving(caster: RayCaster, x, n, lights, intensities, rng, bounces: int) -> np.ndarray:
-    """Radiance arriving at `x` along one cosine-distributed ray each, from surfaces lit directly and
-    (`bounces - 1` times) indirectly."""
-    hits = caster.intersect(x, cosine_directions(n, rng))
+def _arriving(caster: RayCaster, x, n, lights, intensities, rng, bounces: int, square=None) -> np.ndarray:
+    """Radiance arriving at `x` along one cosine-distributed ray each (from the points `square` of the
+    unit square if given), from surfaces lit directly and (`bounces - 1` times) indirectly."""
+    hits = caster.intersect(x, cosine_directions(n, rng, square))
     radiance = np.zeros(len(x))
     h = np.nonzero(hits.surface >= 0)[0]
     z, nz, rho = hits.position[h] + caster.offset * hits.normal[h], hits.normal[h], hits.albedo[h]
