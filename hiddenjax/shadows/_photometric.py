@@ -72,7 +72,7 @@ flat valley of its distance and the tone curve's power. The bounce light's error
 spread the answer: a noisy regressor biases a least-squares fit (errors in variables), here towards
 a lower power and, along the valley, a shorter distance. On a desk rendered with the model's own
 physics the lamp came out 0.55 cm short with 64 independent rays per pixel (three draws), 0.30 cm
-with 64 stratified ones and 0.02 cm (spread 0.04 cm over five draws) with 256 stratified, hence
+with 64 stratified ones and 0.02 cm (spread 0.05 cm over five draws) with 256 stratified, hence
 `BOUNCE_RAYS`.
 """
 
