@@ -1,6 +1,7 @@
 """Light fitting on path-traced photos: accuracy from near and far starts, time per light.
 
     python benchmarks/bench_light_fit.py [--quick] [--out DIR] [--part all|single|multi|textured|faulty]
+                                         [--cases N] [--seed S]
 
 Photos: Mitsuba 3's path tracer (`max_depth=4`: direct light plus two diffuse bounces, 256 spp,
 box filter) of the fixtures on a table at 128x128 pixels, each under one isotropic point light
@@ -29,8 +30,9 @@ every object 3 mm from its true place (a random horizontal direction). Fits as `
 does without a reference: `fit_lights(clearance=0.005, shading="smooth")` in a box of +-1.1 m
 around the pencil, no start, no mask. Reported per light: the angle between the found and the
 true direction from the occluders' centre, the position error, the distance error, and whether
-the truth lies inside the reported 95% cone and interval (`light_uncertainty`); beside it the
-plain fit (`fit_lights` with neither) on the same photos.
+the truth lies inside the reported 95% cone and interval (`light_uncertainty`), each on its own,
+with the distance error in standard deviations; beside it the plain fit (`fit_lights` with
+neither) on the same photos. `--seed` draws other desks (lamps, objects' errors, gammas).
 """
 
 import argparse
@@ -42,6 +44,7 @@ from pathlib import Path
 
 import matplotlib
 import numpy as np
+import scipy.stats
 
 import hiddenjax as hj
 from _report import Table, finish_plot  # noqa: E402
@@ -100,6 +103,18 @@ def _seen(u, light):
     angle = float(np.degrees(np.arccos(np.clip(u["direction"] @ true / distance, -1, 1))))
     inside = u["angle"] is not None and angle <= u["angle"] and u["interval"][0] <= distance <= u["interval"][1]
     return angle, distance, bool(inside)
+
+
+def _coverage(u, angle, distance) -> dict:
+    """Whether the truth lies in the 95% cone and in the 95% interval of one row `u` of
+    `light_uncertainty`, each on its own, and the distance error in standard deviations (the
+    interval's half-width over `z_0.975`), or Nones without a covariance."""
+    if u["angle"] is None:
+        return dict(inside_cone=None, inside_interval=None, distance_z=None)
+    sigma = (u["interval"][1] - u["interval"][0]) / (2 * scipy.stats.norm.ppf(0.975))
+    return dict(inside_cone=bool(angle <= u["angle"]),
+                inside_interval=bool(u["interval"][0] <= distance <= u["interval"][1]),
+                distance_z=float((u["distance"] - distance) / sigma))
 
 
 def _inside(fit, scene, light) -> bool:
@@ -195,7 +210,8 @@ def _faulty(cases, render, table, rng):
                                  position_error_m=float(np.linalg.norm(fit.positions[k] - light)),
                                  distance_error_m=u["distance"] - true_distance,
                                  cone_deg=u["angle"], interval_m=None if u["interval"] is None else u["interval"].tolist(),
-                                 inside=bool(inside), seconds=seconds, warnings=list(fit.warnings)))
+                                 inside=bool(inside), **_coverage(u, angle, true_distance), seconds=seconds,
+                                 warnings=list(fit.warnings)))
                 table.append((f"case {case}: {len(objects)} object(s), {count} lamp(s), {true_distance:.2f} m, "
                               f"gamma {gamma:.2f}", label, f"{angle:.2f} deg / {100 * rows[-1]['position_error_m']:.1f} cm",
                               f"{seconds:.0f}" + (", inside 95%" if inside else "")))
@@ -213,8 +229,21 @@ def _faulty_summary(rows) -> dict:
                           position_at_half_metre_median_m=float(np.median(position)),
                           position_within_5cm_at_half_metre=float(np.mean(position <= 0.05)),
                           inside_95=float(np.mean([r["inside"] for r in mine])),
+                          **_calibration(mine),
                           seconds_median=float(np.median([r["seconds"] for r in mine])))
     return out
+
+
+def _calibration(rows) -> dict:
+    """The share of lights inside the 95% cone and inside the 95% interval, and the mean and RMS of
+    the distance errors in standard deviations (0 and 1 for calibrated intervals)."""
+    rows = [r for r in rows if r["distance_z"] is not None]
+    if not rows:
+        return {}
+    z = np.array([r["distance_z"] for r in rows])
+    return dict(inside_cone=float(np.mean([r["inside_cone"] for r in rows])),
+                inside_interval=float(np.mean([r["inside_interval"] for r in rows])),
+                distance_z_mean=float(z.mean()), distance_z_rms=float(np.sqrt(np.mean(z**2))))
 
 
 def main(argv=None):
@@ -225,6 +254,8 @@ def main(argv=None):
                     help="single lights, several at once, both (the starts are the same either way), a "
                          "textured table with a reference photo, or faulty desk photos (not in all)")
     ap.add_argument("--cases", type=int, default=16, help="faulty desk photos (--part faulty; default 16)")
+    ap.add_argument("--seed", type=int, default=7,
+                    help="the faulty photos' draws (--part faulty; default 7): another seed, other desks")
     args = ap.parse_args(argv)
     hj.enable_compilation_cache()  # programs compiled once per machine (docs: compilation cache)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -236,14 +267,18 @@ def main(argv=None):
     table = Table()
     table.append(("fixture / light", "start", "error (cm)", "time (s), x Embree render"))
     if args.part == "faulty":
-        rows = _faulty(2 if args.quick else args.cases, render, table, np.random.default_rng(7))
-        results = dict(photos=photos, faulty=rows, summary=_faulty_summary(rows))
+        rows = _faulty(2 if args.quick else args.cases, render, table, np.random.default_rng(args.seed))
+        results = dict(photos=photos, seed=args.seed, faulty=rows, summary=_faulty_summary(rows))
         table.print_all()
         for label, summary in results["summary"].items():
             print(f"{label}: direction within 3 deg {summary['direction_within_3deg']:.0%} (median "
                   f"{summary['direction_median_deg']:.2f}), position within 5 cm at 0.5 m "
                   f"{summary['position_within_5cm_at_half_metre']:.0%}, truth inside the 95% cone and interval "
                   f"{summary['inside_95']:.0%}, {summary['seconds_median']:.0f} s per fit")
+            if "inside_cone" in summary:
+                print(f"  inside the cone {summary['inside_cone']:.0%}, inside the interval "
+                      f"{summary['inside_interval']:.0%}; distance error in standard deviations: mean "
+                      f"{summary['distance_z_mean']:.2f}, RMS {summary['distance_z_rms']:.2f}")
         _faulty_picture(args.out / "faulty.png", rows)
         (args.out / "results.json").write_text(json.dumps(results, indent=2))
         return
