@@ -101,8 +101,8 @@ def _seen(u, light):
     true = light - u["anchor"]
     distance = float(np.linalg.norm(true))
     angle = float(np.degrees(np.arccos(np.clip(u["direction"] @ true / distance, -1, 1))))
-    inside = u["angle"] is not None and angle <= u["angle"] and u["interval"][0] <= distance <= u["interval"][1]
-    return angle, distance, bool(inside)
+    coverage = _coverage(u, angle, distance)
+    return angle, distance, bool(coverage["inside_cone"] and coverage["inside_interval"])
 
 
 def _coverage(u, angle, distance) -> dict:
