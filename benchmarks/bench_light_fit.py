@@ -31,8 +31,10 @@ does without a reference: `fit_lights(clearance=0.005, shading="smooth")` in a b
 around the pencil, no start, no mask. Reported per light: the angle between the found and the
 true direction from the occluders' centre, the position error, the distance error, and whether
 the truth lies inside the reported 95% cone and interval (`light_uncertainty`), each on its own,
-with the distance error in standard deviations; beside it the plain fit (`fit_lights` with
-neither) on the same photos. `--seed` draws other desks (lamps, objects' errors, gammas).
+with the distance error in standard deviations, and the falloff fit's own signs (its shadow
+prior's widening, the residual's correlation area and noise, the tone curve's power); beside it
+the plain fit (`fit_lights` with neither) on the same photos. `--seed` draws other desks (lamps,
+objects' errors, gammas).
 """
 
 import argparse
@@ -173,6 +175,16 @@ def faulty_photo(photo, rng):
     return np.clip(photo * (1 - 0.35 * r2) / np.percentile(photo, 99.5), 0, 1) ** (1 / gamma), gamma
 
 
+def _falloff_signs(falloff, k: int) -> dict:
+    """What the falloff fit says of its own health for light `k` (none without it): how many times the
+    shadow's direction prior was widened, the residual's correlation area (pixels) and its noise (log
+    radiance), and the tone curve's power; a lost lamp shows in them before any warning reads them."""
+    if falloff is None:
+        return {}
+    return dict(prior_scale=float(falloff.prior_scale[k]), correlation=falloff.correlation, noise=falloff.noise,
+                tone_power=falloff.beta)
+
+
 def _faulty(cases, render, table, rng):
     """The faulty-photo study (module docstring): one row per light and fit."""
     cam = hj.Camera.look_at([0.0, 0.32, 0.30], [0.0, 0.0, -0.02], [0, 1, 0], 60.0, 160, 120)
@@ -211,7 +223,7 @@ def _faulty(cases, render, table, rng):
                                  distance_error_m=u["distance"] - true_distance,
                                  cone_deg=u["angle"], interval_m=None if u["interval"] is None else u["interval"].tolist(),
                                  inside=bool(inside), **_coverage(u, angle, true_distance), seconds=seconds,
-                                 warnings=list(fit.warnings)))
+                                 warnings=list(fit.warnings), **_falloff_signs(fit.falloff, k)))
                 table.append((f"case {case}: {len(objects)} object(s), {count} lamp(s), {true_distance:.2f} m, "
                               f"gamma {gamma:.2f}", label, f"{angle:.2f} deg / {100 * rows[-1]['position_error_m']:.1f} cm",
                               f"{seconds:.0f}" + (", inside 95%" if inside else "")))
