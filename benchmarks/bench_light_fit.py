@@ -97,30 +97,28 @@ def _error(found, truth):
 
 
 def _seen(u, light):
-    """`(angle, distance, inside)` of the true `light` against one row `u` of `light_uncertainty`: the
-    angle between the found and true directions from the objects, the true distance, and whether the
-    truth lies in the 95% cone and distance interval."""
+    """`(angle, distance, coverage)` of the true `light` against one row `u` of `light_uncertainty`: the
+    angle between the found and true directions from the objects, the true distance, and `_coverage`."""
     true = light - u["anchor"]
     distance = float(np.linalg.norm(true))
     angle = float(np.degrees(np.arccos(np.clip(u["direction"] @ true / distance, -1, 1))))
-    coverage = _coverage(u, angle, distance)
-    return angle, distance, bool(coverage["inside_cone"] and coverage["inside_interval"])
+    return angle, distance, _coverage(u, angle, distance)
 
 
 def _coverage(u, angle, distance) -> dict:
-    """Whether the truth lies in the 95% cone and in the 95% interval of one row `u` of
-    `light_uncertainty`, each on its own, and the distance error in standard deviations (the
-    interval's half-width over `z_0.975`), or Nones without a covariance."""
+    """Whether the truth lies in the 95% cone and distance interval of one row `u` of
+    `light_uncertainty` (`inside`), in each on its own, and the distance error in standard deviations
+    (the interval's half-width over `z_0.975`); without a covariance not inside, the rest None."""
     if u["angle"] is None:
-        return dict(inside_cone=None, inside_interval=None, distance_z=None)
+        return dict(inside=False, inside_cone=None, inside_interval=None, distance_z=None)
     sigma = (u["interval"][1] - u["interval"][0]) / (2 * scipy.stats.norm.ppf(0.975))
-    return dict(inside_cone=bool(angle <= u["angle"]),
-                inside_interval=bool(u["interval"][0] <= distance <= u["interval"][1]),
+    cone, interval = bool(angle <= u["angle"]), bool(u["interval"][0] <= distance <= u["interval"][1])
+    return dict(inside=cone and interval, inside_cone=cone, inside_interval=interval,
                 distance_z=float((u["distance"] - distance) / sigma))
 
 
 def _inside(fit, scene, light) -> bool:
-    return _seen(hj.shadows.light_uncertainty(fit, scene)[0], light)[2]
+    return _seen(hj.shadows.light_uncertainty(fit, scene)[0], light)[2]["inside"]
 
 
 def _textured(size, lights, render, table):
@@ -216,17 +214,17 @@ def _faulty(cases, render, table, rng):
                         key=lambda p: np.sum(np.linalg.norm(fit.positions[list(p)] - lights, axis=1)))
             for light, k in zip(lights, order):
                 u = found[k]
-                angle, true_distance, inside = _seen(u, light)
+                angle, true_distance, coverage = _seen(u, light)
                 rows.append(dict(case=case, fit=label, objects=len(objects), lights=count, gamma=gamma,
                                  light=light.tolist(), distance_m=true_distance, direction_error_deg=angle,
                                  position_error_m=float(np.linalg.norm(fit.positions[k] - light)),
                                  distance_error_m=u["distance"] - true_distance,
                                  cone_deg=u["angle"], interval_m=None if u["interval"] is None else u["interval"].tolist(),
-                                 inside=bool(inside), **_coverage(u, angle, true_distance), seconds=seconds,
+                                 **coverage, seconds=seconds,
                                  warnings=list(fit.warnings), **_falloff_signs(fit.falloff, k)))
                 table.append((f"case {case}: {len(objects)} object(s), {count} lamp(s), {true_distance:.2f} m, "
                               f"gamma {gamma:.2f}", label, f"{angle:.2f} deg / {100 * rows[-1]['position_error_m']:.1f} cm",
-                              f"{seconds:.0f}" + (", inside 95%" if inside else "")))
+                              f"{seconds:.0f}" + (", inside 95%" if coverage["inside"] else "")))
     return rows
 
 
