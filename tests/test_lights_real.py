@@ -213,12 +213,13 @@ def faulty_desk():
     return scene, shadows, encoded, sh.smooth_shading(encoded, np.asarray(shadows.pixels))
 
 
-@pytest.mark.parametrize("misread, sigma", [(0.0, 1.0), (3.0, 0.5)])
+@pytest.mark.parametrize("misread, sigma", [(0.0, 1.0), (3.0, 0.5), (8.0, 0.5)])
 def test_the_falloff_places_the_lamp_and_corrects_a_misread_shadow(faulty_desk, misread, sigma):
     """The shadow's direction given `misread` degrees off with a standard deviation of `sigma`
     degrees, the start at 1.5 times the distance: the joint fit of the falloff finds the direction
     within 1 degree and the distance within 3%, the truth lies inside the 95% ellipsoid of its
-    covariance, and the prior is widened exactly when it disagrees with the photo (6 sigma off)."""
+    covariance, the prior is widened exactly when it disagrees with the photo (6 and 16 sigma off),
+    and the widened fit's residual is left uncorrelated enough that no warning comes."""
     scene, shadows, photo, shading = faulty_desk
     anchor = sh._search.occluder_centre(scene)
     true = np.linalg.norm(LIGHT - anchor)
@@ -234,10 +235,29 @@ def test_the_falloff_places_the_lamp_and_corrects_a_misread_shadow(faulty_desk, 
     gap = found.positions[0] - LIGHT
     assert gap @ np.linalg.solve(found.covariance[0], gap) < scipy.stats.chi2.ppf(0.95, 3), (gap, found.covariance)
     assert (found.prior_scale[0] > 4) == (misread > 0), found.prior_scale
+    assert found.misfit < sh._fit.CORRELATION_LIMIT and not sh._fit._falloff_notes(found), found.misfit
     assert abs(found.beta * 2.2 - 1) < 0.1, found.beta
     assert found.converged
     with pytest.raises(ValueError, match="one finite 3x3 covariance per light"):
         sh.fit_falloff(photo, scene, shadows, start[None], shading, prior)
+
+
+def test_light_the_scene_lacks_is_warned_of(faulty_desk):
+    """A bright patch on the desk that no modelled lamp makes (10% at its centre, 10 pixels wide: a
+    wall's light, a reflection) pulls the lamp centimetres off; the falloff's residual is then
+    correlated over tens of pixels (below the limit on the clean photo:
+    `test_the_falloff_places_the_lamp_and_corrects_a_misread_shadow`) and the fit says so."""
+    scene, shadows, photo, _ = faulty_desk
+    H, W = photo.shape
+    rows, cols = np.mgrid[:H, :W] + 0.5
+    patched = photo * (1 + 0.1 * np.exp(-((rows - 0.3 * H) ** 2 + (cols - 0.75 * W) ** 2) / (2 * 10.0**2)))
+    anchor = sh._search.occluder_centre(scene)
+    d = (LIGHT - anchor) / np.linalg.norm(LIGHT - anchor)
+    prior = (np.radians(1.0) * np.linalg.norm(LIGHT - anchor)) ** 2 * (np.eye(3) - np.outer(d, d)) + np.outer(d, d)
+    found = sh.fit_falloff(patched, scene, shadows, LIGHT[None], sh.smooth_shading(patched, np.asarray(shadows.pixels)),
+                           prior[None], resamples=0)
+    assert found.misfit > sh._fit.CORRELATION_LIMIT, found.misfit
+    assert any(note.startswith("the lamps' falloff leaves a residual correlated") for note in sh._fit._falloff_notes(found))
 
 
 def test_the_refits_spread_grows_with_the_objects_placement_and_joins_the_covariance(faulty_desk):

@@ -129,7 +129,11 @@ class FalloffFit(NamedTuple):
     each shadow's direction covariance was widened by to agree with the falloff; `resampled (L, 3,
     3)` the part of `covariance` from the refits with the bounce light drawn again (`fit_falloff`'s
     `resamples`); `converged` whether the last joint fit ended on its tolerance rather than at
-    `max_evaluations`; `scan` the ray scan that started it."""
+    `max_evaluations`; `scan` the ray scan that started it; `misfit` the correlation area of the
+    last fit's residual over the noise (`residual_correlation` of `r_i / s_i`, pixels): about 1 where
+    the lights, tone curve and vignetting explain the photo and only its noise is left, tens or
+    hundreds where its brightness holds light the fit does not place (`correlation` is the same
+    measure taken before the prior's check, where a shadow that disagrees can still pull)."""
 
     positions: np.ndarray
     covariance: np.ndarray
@@ -141,6 +145,7 @@ class FalloffFit(NamedTuple):
     resampled: np.ndarray
     converged: bool
     scan: DistanceScan
+    misfit: float
 
 
 class _Brightness:
@@ -434,8 +439,9 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     vignetting = q[2:2 + VIGNETTING_TERMS] / beta if beta != 0 else np.zeros(VIGNETTING_TERMS)
     blocks = lambda C: np.stack([C[3 * l: 3 * l + 3, 3 * l: 3 * l + 3] for l in range(L)])
     noise = float(np.median(local))
+    misfit = residual_correlation(photo_rows(found.x, b) / local, b.pixels, b.shape)
     return FalloffFit(positions, blocks(covariance), beta, vignetting, float(kappa), noise, scales,
-                      blocks(resampled), bool(found.status != 0), scan)
+                      blocks(resampled), bool(found.status != 0), scan, float(misfit))
 
 
 def _moved_objects(scene: Scene, placement: float, normals, rng) -> Scene:
