@@ -32,7 +32,9 @@ around the pencil, no start, no mask. Reported per light: the angle between the 
 true direction from the occluders' centre, the position error, the distance error, and whether
 the truth lies inside the reported 95% cone and interval (`light_uncertainty`), each on its own,
 with the distance error in standard deviations, and the falloff fit's own signs (its shadow
-prior's widening, the residual's correlation area and noise, the tone curve's power); beside it
+prior's widening, the residual's correlation area and noise, the tone curve's power) and whether a
+warning names it or the whole fit (the summary counts the lights warned of, and those outside
+their region with no warning); beside it
 the plain fit (`fit_lights` with neither) on the same photos. `--seed` draws other desks (lamps,
 objects' errors, gammas).
 """
@@ -175,12 +177,18 @@ def faulty_photo(photo, rng):
 
 def _falloff_signs(falloff, k: int) -> dict:
     """What the falloff fit says of its own health for light `k` (none without it): how many times the
-    shadow's direction prior was widened, the residual's correlation area (pixels) and its noise (log
-    radiance), and the tone curve's power; a lost lamp shows in them before any warning reads them."""
+    shadow's direction prior was widened, the residual's correlation area (pixels) before the prior's
+    check and after the last fit (`misfit`, which the fit's warning reads), its noise (log radiance),
+    and the tone curve's power."""
     if falloff is None:
         return {}
-    return dict(prior_scale=float(falloff.prior_scale[k]), correlation=falloff.correlation, noise=falloff.noise,
-                tone_power=falloff.beta)
+    return dict(prior_scale=float(falloff.prior_scale[k]), correlation=falloff.correlation, misfit=falloff.misfit,
+                noise=falloff.noise, tone_power=falloff.beta)
+
+
+def _warned(notes, k: int) -> bool:
+    """Whether a warning names light `k` or the whole fit (one that names no light)."""
+    return any(note.startswith((f"light {k} ", f"light {k}:")) or not note.startswith("light ") for note in notes)
 
 
 def _faulty(cases, render, table, rng):
@@ -221,7 +229,8 @@ def _faulty(cases, render, table, rng):
                                  distance_error_m=u["distance"] - true_distance,
                                  cone_deg=u["angle"], interval_m=None if u["interval"] is None else u["interval"].tolist(),
                                  **coverage, seconds=seconds,
-                                 warnings=list(fit.warnings), **_falloff_signs(fit.falloff, k)))
+                                 warnings=list(fit.warnings), warned=_warned(fit.warnings, k),
+                                 **_falloff_signs(fit.falloff, k)))
                 table.append((f"case {case}: {len(objects)} object(s), {count} lamp(s), {true_distance:.2f} m, "
                               f"gamma {gamma:.2f}", label, f"{angle:.2f} deg / {100 * rows[-1]['position_error_m']:.1f} cm",
                               f"{seconds:.0f}" + (", inside 95%" if coverage["inside"] else "")))
@@ -239,6 +248,8 @@ def _faulty_summary(rows) -> dict:
                           position_at_half_metre_median_m=float(np.median(position)),
                           position_within_5cm_at_half_metre=float(np.mean(position <= 0.05)),
                           inside_95=float(np.mean([r["inside"] for r in mine])),
+                          warned=int(sum(r["warned"] for r in mine)),
+                          outside_unwarned=int(sum(not r["inside"] and not r["warned"] for r in mine)),
                           **_calibration(mine),
                           seconds_median=float(np.median([r["seconds"] for r in mine])))
     return out
