@@ -34,9 +34,8 @@ the truth lies inside the reported 95% cone and interval (`light_uncertainty`), 
 with the distance error in standard deviations, and the falloff fit's own signs (its shadow
 prior's widening, the residual's correlation area and noise, the tone curve's power) and whether a
 warning names it or the whole fit (the summary counts the lights warned of, and those outside
-their region with no warning); beside it
-the plain fit (`fit_lights` with neither) on the same photos. `--seed` draws other desks (lamps,
-objects' errors, gammas).
+their region with no warning); beside it the plain fit (`fit_lights` with neither) on the same
+photos. `--seed` draws other desks (lamps, objects' errors, gammas).
 """
 
 import argparse

@@ -162,6 +162,13 @@ def _turned(direction, degrees):
     return direction * np.cos(a) + np.cross(axis, direction) * np.sin(a)
 
 
+def _direction_prior(direction, degrees, distance):
+    """A light position's covariance from its shadow: `degrees` standard deviation across the unit
+    `direction` at `distance` metres, 1 m^2 along it (the falloff fit uses the part across)."""
+    along = np.outer(direction, direction)
+    return (np.radians(degrees) * distance) ** 2 * (np.eye(3) - along) + along
+
+
 @pytest.mark.parametrize("bounces", [0, 1, 2])
 def test_interreflections_inside_a_sphere_add_the_albedo_per_bounce(bounces):
     """A point light at the centre of a closed sphere (radius R, albedo rho) seen from inside: every
@@ -225,8 +232,7 @@ def test_the_falloff_places_the_lamp_and_corrects_a_misread_shadow(faulty_desk, 
     true = np.linalg.norm(LIGHT - anchor)
     direction = _turned((LIGHT - anchor) / true, misread)
     start = anchor + 1.5 * true * direction
-    across = np.eye(3) - np.outer(direction, direction)
-    prior = (np.radians(sigma) * 1.5 * true) ** 2 * across + np.outer(direction, direction)
+    prior = _direction_prior(direction, sigma, 1.5 * true)
     found = sh.fit_falloff(photo, scene, shadows, start[None], shading, prior[None])
     v = found.positions[0] - anchor
     angle = np.degrees(np.arccos(v @ (LIGHT - anchor) / np.linalg.norm(v) / true))
@@ -252,8 +258,7 @@ def test_light_the_scene_lacks_is_warned_of(faulty_desk):
     rows, cols = np.mgrid[:H, :W] + 0.5
     patched = photo * (1 + 0.1 * np.exp(-((rows - 0.3 * H) ** 2 + (cols - 0.75 * W) ** 2) / (2 * 10.0**2)))
     anchor = sh._search.occluder_centre(scene)
-    d = (LIGHT - anchor) / np.linalg.norm(LIGHT - anchor)
-    prior = (np.radians(1.0) * np.linalg.norm(LIGHT - anchor)) ** 2 * (np.eye(3) - np.outer(d, d)) + np.outer(d, d)
+    prior = _direction_prior((LIGHT - anchor) / np.linalg.norm(LIGHT - anchor), 1.0, np.linalg.norm(LIGHT - anchor))
     found = sh.fit_falloff(patched, scene, shadows, LIGHT[None], sh.smooth_shading(patched, np.asarray(shadows.pixels)),
                            prior[None], resamples=0)
     assert found.misfit > sh._fit.CORRELATION_LIMIT, found.misfit
@@ -276,7 +281,7 @@ def test_the_refits_spread_grows_with_the_objects_placement_and_joins_the_covari
     true = np.linalg.norm(LIGHT - anchor)
     direction = (LIGHT - anchor) / true
     start = anchor + 1.5 * true * direction
-    prior = (np.radians(1.0) * 1.5 * true) ** 2 * (np.eye(3) - np.outer(direction, direction)) + np.outer(direction, direction)
+    prior = _direction_prior(direction, 1.0, 1.5 * true)
     fit = lambda **kw: sh.fit_falloff(photo, scene, shadows, start[None], shading, prior[None], **kw)
     plain = fit(resamples=0)
     assert np.all(plain.resampled == 0)

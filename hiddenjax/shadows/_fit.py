@@ -230,10 +230,6 @@ def fit_lights(
     notes = _distrust(positions, a, float(scale), None if searched is None else searched.box, shading == "smooth")
     if found is not None:
         notes += _falloff_notes(found)
-    if found is not None and not found.converged:
-        notes.append("the fit of the lamps' falloff stopped at its evaluation limit before it converged: the "
-                     "distances and their intervals are where it stopped, not at the best fit; a start near "
-                     "each lamp (--init) shortens the way")
     for note in notes:
         warnings.warn(note, stacklevel=2)
     return LightFit(positions, intensities, np.array(history), np.stack(trajectory), temps, a, *channels,
@@ -266,19 +262,25 @@ CORRELATION_LIMIT = 25.0  # pixels: a falloff residual correlated over a larger 
 
 
 def _falloff_notes(found) -> list[str]:
-    """Sentences about a falloff fit (`FalloffFit`) not to trust: its last residual correlated over more
+    """Sentences about a falloff fit (`FalloffFit`) not to trust: stopped at its evaluation limit
+    (`FalloffFit.converged` false), or its last residual correlated over more
     than `CORRELATION_LIMIT` pixels (`FalloffFit.misfit`; about 1 where the lamps, tone curve and
     vignetting explain the photo and only its noise is left), the brightness holding light the fit
     does not place. On the faulty desk photos the two lost lamps (36.7 and 72 degrees off, the latter
     inside a 2.5-degree cone) left 269 and 183 pixels, every other desk replayed 1.0-4.5. (A shadow
     that disagrees with the falloff is not a sign: its direction's covariance is widened to agree, and
     the lamps widened most, 36-532 times, were inside their wider cones.)"""
-    if found.misfit <= CORRELATION_LIMIT:
-        return []
-    return [(f"the lamps' falloff leaves a residual correlated over {found.misfit:.0f} pixels (about 1 where the "
-             "fitted lamps, tone curve and vignetting explain the photo): its brightness holds light or structure "
-             "the fit does not place (a lamp lost, more lamps than --count, light the scene lacks, a textured or "
-             "glossy receiver); the lights may be farther off than their cones and intervals say")]
+    notes = []
+    if found.misfit > CORRELATION_LIMIT:
+        notes.append(f"the lamps' falloff leaves a residual correlated over {found.misfit:.0f} pixels (about 1 where "
+                     "the fitted lamps, tone curve and vignetting explain the photo): its brightness holds light or "
+                     "structure the fit does not place (a lamp lost, more lamps than --count, light the scene lacks, "
+                     "a textured or glossy receiver); the lights may be farther off than their cones and intervals say")
+    if not found.converged:
+        notes.append("the fit of the lamps' falloff stopped at its evaluation limit before it converged: the "
+                     "distances and their intervals are where it stopped, not at the best fit; a start near "
+                     "each lamp (--init) shortens the way")
+    return notes
 
 
 def _distrust(positions, ambient: float, brightness: float, box, smooth: bool = False) -> list[str]:
