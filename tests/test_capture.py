@@ -55,6 +55,9 @@ def test_outline_is_the_pixel_coverage_embree_sees(capture, x):
         outline = photo.silhouette(mesh, camera, supersample)
         assert abs(outline.sum() / coverage.sum() - 1) < tolerance
         assert np.abs(outline - coverage).sum() < 0.05 * coverage.sum()
+    for supersample in (0, 256, 2.5):  # the fill's block sums are exact uint16 for 1-255 only
+        with pytest.raises(ValueError, match="whole number in 1-255"):
+            photo.silhouette(mesh, camera, supersample)
 
 
 def test_refinement_moves_the_object_to_its_place(capture):

@@ -158,6 +158,9 @@ class _Outline:
                              "check --at (metres from the board centre) and the board's pose")
         pix = np.stack([fy * p[:, 1] / depth + cy, fx * p[:, 0] / depth + cx], axis=-1)
         H, W, k = self.camera.height, self.camera.width, int(supersample)
+        if not 1 <= k <= 255 or k != supersample:
+            raise ValueError(f"supersample is the outline's fill factor per pixel side, a whole number in 1-255; "
+                             f"got {supersample}")
         out = np.zeros((H, W))
         (r0, c0), (r1, c1) = np.floor(pix.min(axis=0)).astype(int) - 1, np.ceil(pix.max(axis=0)).astype(int) + 1
         r0, c0, r1, c1 = max(r0, 0), max(c0, 0), min(r1, H), min(c1, W)
@@ -173,8 +176,16 @@ class _Outline:
             faces = faces[np.einsum("fk,fk->f", normal, t.mean(axis=1) - self.origin) < 0]
         for triangle in xy[faces]:  # one by one: fillPoly would cancel overlapping triangles
             cv2.fillConvexPoly(fine, triangle, 1, lineType=cv2.LINE_8, shift=4)
-        out[r0:r1, c0:c1] = fine.reshape(r1 - r0, k, c1 - c0, k).mean(axis=(1, 3))
+        out[r0:r1, c0:c1] = _block_sums(fine, k) / k**2
         return out, (r0, r1, c0, c1)
+
+
+def _block_sums(fine: np.ndarray, k: int) -> np.ndarray:
+    """Sums of the `k x k` blocks of a 0/1 `uint8` image, exact in `uint16` (`k <= 255`): rows then
+    columns, each a contiguous reduction (9x faster than a mean over axes 1 and 3 at k = 16)."""
+    h, w = fine.shape[0] // k, fine.shape[1] // k
+    rows = fine.reshape(h, k, w * k).sum(axis=1, dtype=np.uint16)
+    return rows.reshape(h, w, k).sum(axis=2, dtype=np.uint16)
 
 
 def _window(box, pad: int, shape):
