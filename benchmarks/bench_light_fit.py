@@ -178,11 +178,11 @@ def _falloff_signs(falloff, k: int) -> dict:
     """What the falloff fit says of its own health for light `k` (none without it): how many times the
     shadow's direction prior was widened, the residual's correlation area (pixels) before the prior's
     check and after the last fit (`misfit`, which the fit's warning reads), its noise (log radiance),
-    and the tone curve's power."""
+    the tone curve's power and the ambient over the lamps' mean radiance (the desks have none)."""
     if falloff is None:
         return {}
     return dict(prior_scale=float(falloff.prior_scale[k]), correlation=falloff.correlation, misfit=falloff.misfit,
-                noise=falloff.noise, tone_power=falloff.beta)
+                noise=falloff.noise, tone_power=falloff.beta, ambient=falloff.ambient)
 
 
 def _warned(notes, k: int) -> bool:

@@ -248,6 +248,39 @@ def test_the_falloff_places_the_lamp_and_corrects_a_misread_shadow(faulty_desk, 
         sh.fit_falloff(photo, scene, shadows, start[None], shading, prior)
 
 
+def test_a_fill_light_is_the_ambient_and_no_ambient_is_not_negative(faulty_desk):
+    """The desk's photo (no light but the lamp's: `ambient` at its bound, 0) and the same desk under a
+    fill light of 20% of the lamp's mean radiance added before the lens and the tone curve: the fit
+    reads the fill as the ambient (within 0.05) and still places the lamp within 1 degree and 3% of
+    its distance, the truth inside its 95% ellipsoid. The bound keeps the ambient from below zero;
+    it does not hold a real one down."""
+    scene, shadows, photo, _ = faulty_desk
+    anchor = sh._search.occluder_centre(scene)
+    true = np.linalg.norm(LIGHT - anchor)
+    prior = _direction_prior((LIGHT - anchor) / true, 1.0, true)
+    H, W = photo.shape
+    vignetting = 1 - 0.3 * _radius2(H, W)
+    linear = photo.astype(np.float64) ** 2.2  # back through the tone curve (the clipped pixels stay clipped)
+    lamp = np.asarray(shadows.image_to_rows(linear / vignetting))
+    fill = 0.2 * float(np.mean(lamp[lamp > 0]))
+    filled = ((linear + fill * vignetting) / (1 + fill)) ** (1 / 2.2)
+    for image, ambient in ((photo, 0.0), (filled, 0.2)):
+        found = sh.fit_falloff(image, scene, shadows, LIGHT[None], sh.smooth_shading(image, np.asarray(shadows.pixels)),
+                               prior[None], resamples=0)
+        assert found.ambient >= 0 and abs(found.ambient - ambient) < 0.05, found.ambient
+        v = found.positions[0] - anchor
+        assert np.degrees(np.arccos(v @ (LIGHT - anchor) / np.linalg.norm(v) / true)) < 1.0
+        assert abs(np.linalg.norm(v) / true - 1) < 0.03, np.linalg.norm(v) / true
+        gap = found.positions[0] - LIGHT
+        assert gap @ np.linalg.solve(found.covariance[0], gap) < scipy.stats.chi2.ppf(0.95, 3), (gap, found.covariance)
+
+
+def _radius2(H, W):
+    """`r^2` of the faulty desk's vignetting: the squared distance from the image centre over the half-diagonal's."""
+    rows, cols = np.mgrid[:H, :W] + 0.5
+    return ((rows - H / 2) ** 2 + (cols - W / 2) ** 2) / ((H / 2) ** 2 + (W / 2) ** 2)
+
+
 def test_light_the_scene_lacks_is_warned_of(faulty_desk):
     """A bright patch on the desk that no modelled lamp makes (10% at its centre, 10 pixels wide: a
     wall's light, a reflection) pulls the lamp centimetres off; the falloff's residual is then
@@ -335,6 +368,7 @@ def test_lights_on_a_faulty_8bit_photo_of_any_size(tmp_path, capsys):
     response = found["camera_response"]  # the photo was encoded with gamma 2.0 and vignetted by 1 - 0.3 r^2
     assert abs(response["gamma"] / 2.0 - 1) < 0.1 and response["vignetting"][0] < 0 and response["converged"], response
     assert 0 <= response["refits_share"][0] < 1 and response["prior_scale"][0] >= 1, response
+    assert 0 <= response["ambient"] < 0.05, response  # the desk has no light but the lamp's
     assert "seen from the objects" in capsys.readouterr().out
     hj.io.write_png(tmp_path / "square.png", np.zeros((64, 64), np.uint8))
     assert main(["lights", str(tmp_path / "desk.toml"), str(tmp_path / "square.png"), "-o",

@@ -177,9 +177,11 @@ def lights(args) -> dict:
 
 
 def _response(falloff) -> dict | None:
-    """What the falloff fit read off the camera and how far it trusted the shadows (None without it)."""
+    """What the falloff fit read off the camera, the room's constant light over the lamps' mean radiance
+    (`ambient`), and how far it trusted the shadows (None without it)."""
     if falloff is None:
         return None
     share = [float(np.trace(R) / max(np.trace(C), 1e-300)) for R, C in zip(falloff.resampled, falloff.covariance)]
     return dict(tone_power=falloff.beta, gamma=1.0 / falloff.beta, vignetting=falloff.vignetting.tolist(),
-                prior_scale=falloff.prior_scale.tolist(), refits_share=share, converged=falloff.converged)
+                ambient=falloff.ambient, prior_scale=falloff.prior_scale.tolist(), refits_share=share,
+                converged=falloff.converged)

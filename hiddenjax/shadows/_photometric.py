@@ -41,9 +41,11 @@ one joint robust fit of all the lights' positions and the parameters above, the 
 direction entering as a Gaussian prior on each light's direction `u = (p - c) / |p - c|` from the
 occluders' centre `c`:
 
-    min  sum_i rho(r_i / (s_i sqrt(kappa))) + sum_l |W_l (u_l - u0_l)|^2,
+    min  sum_i rho(r_i / (s_i sqrt(kappa))) + sum_l |W_l (u_l - u0_l)|^2   subject to  a >= 0,
 
-`r_i` the log residuals above, `rho` the robust loss, `s_i^2` their variance around pixel `i`
+`r_i` the log residuals above (the ambient `a` kept from below zero: no light is negative, and
+a negative `a` steepens the falloff's contrast as a lower `beta` flattens it, a valley along which
+the photo's noise carried both, and the distances with them), `rho` the robust loss, `s_i^2` their variance around pixel `i`
 (a Gaussian of `NOISE_WIDTH` pixels over the squared residuals, each clipped at the loss' scale:
 a photo's noise is not one level, two lamps sampled by a path tracer are quiet only where they
 light the desk equally, and a misfit near an object counts as that region's noise) and `kappa`
@@ -133,7 +135,9 @@ class FalloffFit(NamedTuple):
     last fit's residual over the noise (`residual_correlation` of `r_i / s_i`, pixels): about 1 where
     the lights, tone curve and vignetting explain the photo and only its noise is left, tens or
     hundreds where its brightness holds light the fit does not place (`correlation` is the same
-    measure taken before the prior's check, where a shadow that disagrees can still pull)."""
+    measure taken before the prior's check, where a shadow that disagrees can still pull);
+    `ambient` the constant light `a >= 0` beside the lamps, over their mean lit radiance (room light,
+    a wall's glow)."""
 
     positions: np.ndarray
     covariance: np.ndarray
@@ -146,6 +150,7 @@ class FalloffFit(NamedTuple):
     converged: bool
     scan: DistanceScan
     misfit: float
+    ambient: float
 
 
 class _Brightness:
@@ -379,6 +384,7 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     z = np.concatenate([params, scan.positions.reshape(-1)])
     lower, upper = np.full(len(z), -np.inf), np.full(len(z), np.inf)
     lower[1], upper[1] = TONE_POWER  # (beta near 0 flattens the photo and frees the positions)
+    lower[2 + VIGNETTING_TERMS] = 0.0  # no negative light: a < 0 deepens the falloff as a lower beta flattens it
     if box is not None:
         lower[Q:], upper[Q:] = np.tile(box[0], L), np.tile(box[1], L)
     z = np.clip(z, lower + 1e-9, upper - 1e-9)
@@ -441,7 +447,7 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     noise = float(np.median(local))
     misfit = residual_correlation(photo_rows(found.x, b) / local, b.pixels, b.shape)
     return FalloffFit(positions, blocks(covariance), beta, vignetting, float(kappa), noise, scales,
-                      blocks(resampled), bool(found.status != 0), scan, float(misfit))
+                      blocks(resampled), bool(found.status != 0), scan, float(misfit), float(q[2 + VIGNETTING_TERMS]))
 
 
 def _moved_objects(scene: Scene, placement: float, normals, rng) -> Scene:
