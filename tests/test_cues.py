@@ -1,5 +1,7 @@
 """Cues of the linear inverse (leverage, Cook's distance, uncertainty, gain images) and saliency."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -187,6 +189,34 @@ def test_a_failed_shifted_cholesky_falls_back_to_qr_with_a_warning(scene_T, monk
         finally:
             jax.clear_caches()
         np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-12)
+
+
+def test_a_shift_short_of_the_rounding_is_widened_before_qr(scene_T, monkeypatch):
+    """Where the shift from the mean of diag(A^T A) falls short (the factor NaN), the factorization is
+    tried again shifted by the whole trace, a bound on A^T A's largest eigenvalue, with one pass more:
+    no warning, and the cues of the QR factorization (float64) to 1e-9."""
+    from hiddenjax.cues import _linear
+    refined = _linear._refined_inverse_factor
+    shifts = []
+
+    def narrow_fails(A, grid, ls, lr, chunk, passes, columns=None, wide=False):
+        shifts.append((wide, passes))
+        return refined(A, grid, ls, lr, chunk, passes, columns, wide) if wide else jnp.full((A.shape[1],) * 2, jnp.nan)
+
+    with jax.enable_x64():
+        qr = hj.cues.LinearCues.build(scene_T, method="qr")
+        try:
+            with monkeypatch.context() as patch:
+                patch.setattr(_linear, "_refined_inverse_factor", narrow_fails)
+                jax.clear_caches()
+                with warnings.catch_warnings():
+                    warnings.simplefilter("error")
+                    cues = hj.cues.LinearCues.build(scene_T)
+        finally:
+            jax.clear_caches()
+        assert [wide for wide, _ in shifts] == [False, True] and shifts[1][1] == shifts[0][1] + 1, shifts
+        np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-9)
+        np.testing.assert_allclose(cues.leverage(), qr.leverage(), rtol=1e-7, atol=1e-9)
 
 
 def test_leverage_under_jit_matches_eager(scene_T):

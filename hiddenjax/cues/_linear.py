@@ -66,8 +66,12 @@ class LinearCues(eqx.Module):
         `method="cholesky"` (default): a shifted Cholesky factorization of the formed `B`, refined
         by CholeskyQR passes (`_refined_inverse_factor`). Forming `A^T A` in float32 alone would
         cost leverage and uncertainty about 1e-2 (measured on the teapot, where `cond(B)` is 2e7)
-        or fail outright; the refinement brings them to about 1e-6. Memory beside `A`: a few
-        `N x N` matrices and one `chunk x N` block of `A L^-T`.
+        or fail outright; the refinement brings them to about 1e-6. Where the shift falls short of the
+        formed matrix's rounding (a strongly correlated `A`: a table's transport whose largest
+        eigenvalue is 2,000 times its mean diagonal), it is tried again shifted by the trace with one
+        pass more (leverage and uncertainty there within 2e-6 of float64, the QR method's 2e-4), and
+        only then by QR, with a warning. Memory beside `A`: a few `N x N` matrices and one `chunk x N`
+        block of `A L^-T`.
         `method="qr"`: `R` from a QR factorization of the stacked least-squares matrix
         `[A; sqrt(smooth) D; sqrt(ridge) I]` (`B = R^T R`), over `qr_chunk` rows of `A` at a time
         (`R <- qr([R; A_k])`): about as fast, 10x less accurate in float32 (teapot: 6e-6), and a few
@@ -92,7 +96,12 @@ class LinearCues(eqx.Module):
             if bool(finite):
                 return cues
             # the shift (from the mean of diag(A^T A)) fell short of the rounding of the formed A^T A,
-            # which scales with its largest eigenvalue: a strongly correlated A
+            # which scales with its largest eigenvalue: a strongly correlated A. Shifted by the whole
+            # trace, a bound on that eigenvalue, with one more pass for the larger s / lr:
+            cues, finite = _factorize(T, *weights, absolute, with_smooth, "cholesky", chunk, qr_chunk, passes + 1,
+                                      columns, wide=True)
+            if bool(finite):
+                return cues
         cues, finite = _factorize(T, *weights, absolute, with_smooth, "qr", chunk, qr_chunk, passes, None)
         if isinstance(finite, jax.core.Tracer):
             return _checked(cues, finite)
@@ -213,13 +222,13 @@ class LinearCues(eqx.Module):
 
 
 @filter_jit
-def _factorize(T, ridge, smooth, absolute, with_smooth, method, chunk, qr_chunk, passes, columns):
+def _factorize(T, ridge, smooth, absolute, with_smooth, method, chunk, qr_chunk, passes, columns, wide=False):
     """`(LinearCues, whether L^-1 is finite)`: the factorization of `LinearCues.build`, one program per method."""
     ls, lr = regularization_weights(T, smooth, ridge, absolute)
     A, grid = T.A, T.grid
     eye = jnp.eye(grid.size, dtype=A.dtype)
     if method == "cholesky":
-        inverse = _refined_inverse_factor(A, grid, ls if with_smooth else None, lr, chunk, passes, columns)
+        inverse = _refined_inverse_factor(A, grid, ls if with_smooth else None, lr, chunk, passes, columns, wide)
     else:
         R = jnp.sqrt(lr) * eye  # the prior rows' R factor, exact for the ridge alone
         if with_smooth:
@@ -256,11 +265,13 @@ def _influence(cues, y, chunk):
     return cues._influence(y, chunk)
 
 
-def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int, columns=None):
+def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int, columns=None, wide: bool = False):
     """`L^-1` with `L L^T = B = A^T A + ls D^T D + lr I` (eq. 5.13; `ls=None`: no smoothing), accurately in float32.
 
     Shifted CholeskyQR (Fukaya et al., 2020): `L` starts as the Cholesky factor of the formed `B`
-    plus `s I`, `s = sqrt(eps) mean(diag(A^T A))`, which exists despite the rounding of `A^T A`.
+    plus `s I`, `s = sqrt(eps) mean(diag(A^T A))` (`wide`: `sqrt(eps) trace(A^T A)`, at least
+    `sqrt(eps)` times the largest eigenvalue, which the rounding of the formed `A^T A` scales with),
+    which exists despite that rounding.
     A pass factors `C = L^-1 B L^-T = Q^T Q + L^-1 R L^-T` with `Q = A L^-T` (accumulated over row
     blocks, never stored) and sets `L <- L chol(C)`. `C` is well conditioned, `cond(C) <= 1 + s / lr`,
     so a pass leaves a relative error of about `eps (1 + s / lr)`; a second pass (see `_passes`)
@@ -272,7 +283,7 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int, columns=None):
     n = A.shape[1]
     gram = gram_matrix(A, chunk=chunk)
     eps = jnp.finfo(A.dtype).eps
-    shift = jnp.sqrt(eps) * jnp.trace(gram) / N  # the mean of diag(A^T A) over every column
+    shift = jnp.sqrt(eps) * jnp.trace(gram) / (1 if wide else N)  # the mean of diag(A^T A) over every column
     factor = cholesky(gram + (lr + shift) * jnp.eye(n, dtype=A.dtype) if ls is None
                       else gram + prior_matrix(grid, ls, lr + shift, A.dtype))
     del gram
