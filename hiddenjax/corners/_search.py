@@ -35,7 +35,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
-from scipy import ndimage, stats
+from scipy import ndimage
 
 from ._labels import PolarGrid
 from ._refine import _blocks
@@ -246,6 +246,8 @@ def refine_corner(renderer: DifferentialRenderer, observed, mean, cov, *, heatma
     improvement = float(difference.mean())
     noise = float(difference.std(ddof=1) / np.sqrt(checks))
     moved = bool(np.linalg.norm(best[:2] - mean) > 0)
+    from scipy import stats  # here: importing it costs every command a quarter second
+
     accepted = bool(moved and improvement > stats.t.ppf(confidence, checks - 1) * noise)
     answer = best if accepted else at_network
     return CornerRefinement(

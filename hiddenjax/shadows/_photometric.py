@@ -84,7 +84,6 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 import scipy.optimize
-import scipy.stats
 
 from ..scene import Scene, Surface
 from ..transport._embree import RayCaster
@@ -271,6 +270,8 @@ def scan_distances(image, scene: Scene, shadows, positions, shading, *, box=None
 
 def _scan(b: _Brightness, positions, box, points: int, sweeps: int, level: float):
     """`scan_distances` on prepared pixels: `(DistanceScan, params, loss, residual)`."""
+    import scipy.stats  # here, as in `light_uncertainty`: importing it costs every command a quarter second
+
     positions = np.array(positions, np.float64)
     L = len(positions)
     columns = b.images(positions, np.arange(L))
