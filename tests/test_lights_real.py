@@ -133,6 +133,13 @@ def test_residual_correlation_is_one_for_white_noise_and_the_blur_area_for_smoot
     assert abs(area / (4 * np.pi * s**2) - 1) < 0.2, area
 
 
+def _radius2(H, W):
+    """`r^2` of the test photos' vignetting `1 - k r^2`: the squared distance of each pixel's centre from the
+    image centre over the half-diagonal's."""
+    rows, cols = np.mgrid[:H, :W] + 0.5
+    return ((rows - H / 2) ** 2 + (cols - W / 2) ** 2) / ((H / 2) ** 2 + (W / 2) ** 2)
+
+
 def test_distance_from_the_falloff_through_a_tone_curve_and_vignetting():
     """An Embree photo of the desk under one lamp, vignetted (`1 - 0.3 r^2`) and gamma-encoded
     (2.2): started on the true ray at 1.6 times the distance, the scan finds the distance within 5%,
@@ -140,8 +147,7 @@ def test_distance_from_the_falloff_through_a_tone_curve_and_vignetting():
     scene, camera = desk(size=(96, 72))
     anchor = sh._search.occluder_centre(scene)
     photo = hj.render_point_lights(scene, camera, LIGHT[None], [0.05], pixel_samples=9)
-    rows, cols = np.mgrid[:72, :96] + 0.5
-    r2 = ((rows - 36) ** 2 + (cols - 48) ** 2) / (36**2 + 48**2)
+    r2 = _radius2(72, 96)
     encoded = np.clip(photo * (1 - 0.3 * r2) / photo.max(), 0, 1) ** (1 / 2.2)
     shadows = sh.ShadowScene.from_scene(scene, camera, sh.object_clearance(scene, camera, 0.005))
     shading = sh.smooth_shading(encoded, np.asarray(shadows.pixels))
@@ -213,8 +219,7 @@ def faulty_desk():
     (2.2), with the fit's pixels and the photo's smooth shading."""
     scene, camera = desk(size=(96, 72))
     photo = hj.render_point_lights(scene, camera, LIGHT[None], [0.05], pixel_samples=9, bounces=2, bounce_rays=64)
-    rows, cols = np.mgrid[:72, :96] + 0.5
-    r2 = ((rows - 36) ** 2 + (cols - 48) ** 2) / (36**2 + 48**2)
+    r2 = _radius2(72, 96)
     encoded = np.clip(photo * (1 - 0.3 * r2) / np.percentile(photo, 99.5), 0, 1) ** (1 / 2.2)
     shadows = sh.ShadowScene.from_scene(scene, camera, sh.object_clearance(scene, camera, 0.005))
     return scene, shadows, encoded, sh.smooth_shading(encoded, np.asarray(shadows.pixels))
@@ -273,12 +278,6 @@ def test_a_fill_light_is_the_ambient_and_no_ambient_is_not_negative(faulty_desk)
         assert abs(np.linalg.norm(v) / true - 1) < 0.03, np.linalg.norm(v) / true
         gap = found.positions[0] - LIGHT
         assert gap @ np.linalg.solve(found.covariance[0], gap) < scipy.stats.chi2.ppf(0.95, 3), (gap, found.covariance)
-
-
-def _radius2(H, W):
-    """`r^2` of the faulty desk's vignetting: the squared distance from the image centre over the half-diagonal's."""
-    rows, cols = np.mgrid[:H, :W] + 0.5
-    return ((rows - H / 2) ** 2 + (cols - W / 2) ** 2) / ((H / 2) ** 2 + (W / 2) ** 2)
 
 
 def test_light_the_scene_lacks_is_warned_of(faulty_desk):
@@ -342,8 +341,7 @@ def test_lights_on_a_faulty_8bit_photo_of_any_size(tmp_path, capsys):
     aspect ratio is refused in one line."""
     truth, camera = desk(size=(128, 96))
     photo = hj.render_point_lights(truth, camera, LIGHT[None], [0.05], pixel_samples=9, bounces=2)
-    rows, cols = np.mgrid[:96, :128] + 0.5
-    r2 = ((rows - 48) ** 2 + (cols - 64) ** 2) / (48**2 + 64**2)
+    r2 = _radius2(96, 128)
     encoded = np.clip(photo * (1 - 0.3 * r2) / np.percentile(photo, 99.5), 0, 1) ** (1 / 2.0)
     hj.io.write_png(tmp_path / "photo.png", np.round(255 * encoded).astype(np.uint8))
     (tmp_path / "desk.toml").write_text(
