@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import scipy.ndimage
+import scipy.optimize
 import scipy.stats
 
 import hiddenjax as hj
@@ -158,6 +159,28 @@ def test_distance_from_the_falloff_through_a_tone_curve_and_vignetting():
     assert abs(found / true - 1) < 0.05, (found, true)
     assert abs(scan.beta * 2.2 - 1) < 0.1, scan.beta
     assert scan.interval[0, 0] <= true - found <= scan.interval[0, 1], (scan.interval, true - found)
+
+
+def test_the_tone_fit_keeps_a_cameras_power_and_no_negative_light():
+    """`log y = C + beta log(h + a <h>) + vignetting` of a lamp's falloff (`h ~ cos^3 / d^2` over the
+    desk, its centre off the image's) seen through a curve steeper than any camera's (`beta` 2) with
+    a dark floor taken off (`a` -0.1): unbounded, the fit follows the photo to both; the scan's fit
+    stops at the edge of `TONE_POWER` and at `a = 0`, and its residual is larger for it."""
+    from hiddenjax.shadows import _photometric as ph
+
+    rng = np.random.default_rng(3)
+    x, z = rng.uniform(-0.3, 0.3, (2, 4000))
+    d2 = (x - 0.15) ** 2 + (z + 0.1) ** 2 + 0.5**2  # the lamp 0.5 m above a point off the image's centre
+    h = (0.5 / np.sqrt(d2)) ** 3 / d2
+    r2 = (x**2 + z**2) / 0.18
+    log_y = 0.3 + 2.0 * np.log(h - 0.1 * h.mean()) - 0.2 * r2
+    start = np.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.05])
+    free = scipy.optimize.least_squares(ph._log_residual, start, method="lm", args=(h[:, None], log_y, r2))
+    assert abs(free.x[1] - 2.0) < 1e-3 and abs(free.x[2 + ph.VIGNETTING_TERMS] + 0.1) < 1e-3, free.x
+    params, loss, _ = ph._log_fit(h[:, None], log_y, r2)
+    assert abs(params[1] - ph.TONE_POWER[1]) < 1e-6 and params[1] <= ph.TONE_POWER[1], params
+    assert 0 <= params[2 + ph.VIGNETTING_TERMS] < 1e-6, params
+    assert loss > 10 * np.sum(free.fun**2), (loss, free.cost)
 
 
 def _turned(direction, degrees):

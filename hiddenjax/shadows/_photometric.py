@@ -25,7 +25,9 @@ Pixels at the photo's maximum (within `SATURATION`) are clipped and left out. It
     log y = log c + beta log m + k1' r^2 + k2' r^4 + k3' r^6     (k' = beta k; the first light's I is 1),
 
 is fitted by robust least squares (`soft_l1`, scale 0.1 in log radiance: what the shadows'
-trimming misses counts little) for each candidate position of one light along its ray from the
+trimming misses counts little), with `beta` within `TONE_POWER` (0.25-1.5: no camera's tone curve
+is much steeper than linear, and with a bound at 2.5 a two-lamp fit could trade one lamp's falloff
+for a steep curve and lose that lamp) and the ambient `a >= 0` (below), for each candidate position of one light along its ray from the
 occluders' centre, the others held: `p + t e`, `e` the unit direction from that centre to `p`
 (the direction the ratio fit found is kept; the shadows' pixels are left out). The
 best `t` over a grid, refined by a parabola, is the distance; the profile of the loss over `t`
@@ -92,7 +94,7 @@ from ._search import _unit_images, occluder_centre
 
 LOG_SCALE = 0.1  # the robust loss' scale in log radiance
 SHADOW_RATIO = 0.9  # a fitted pixel darker than this fraction of the photo's smooth shading is in a shadow
-TONE_POWER = (0.25, 2.5)  # the tone curve's power beta searched in the joint fit (gamma 0.4-4)
+TONE_POWER = (0.25, 1.5)  # the tone curve's power beta, in the scan and the joint fit (gamma 0.67-4; module docstring)
 NOISE_ROUNDS = 4  # joint fits at most, each weighting the photo by the last one's residual
 SATURATION = 1e-3  # a pixel within this fraction of the photo's maximum is clipped
 VIGNETTING_TERMS = 3  # k1 r^2 + k2 r^4 + k3 r^6: two terms leave 2% at a corner of (1 - 0.35 r^2)
@@ -250,9 +252,21 @@ def _log_fit(h: np.ndarray, log_y: np.ndarray, r2: np.ndarray, start=None):
         floor = 1e-6 * (float(np.mean(h[lit].sum(axis=1))) if lit.any() else 1.0)
         start = np.concatenate([[np.median(log_y[lit]) - np.median(np.log(np.maximum(h[lit].sum(axis=1), floor))),
                                  1.0], np.zeros(VIGNETTING_TERMS), [0.05], np.zeros(L - 1)])
-    found = scipy.optimize.least_squares(_log_residual, start, loss="soft_l1", f_scale=LOG_SCALE, method="trf",
-                                         x_scale="jac", max_nfev=200, args=(h, log_y, r2))
+    lower, upper = _tone_bounds(len(start))
+    found = scipy.optimize.least_squares(_log_residual, np.clip(start, lower + 1e-9, upper - 1e-9), loss="soft_l1",
+                                         f_scale=LOG_SCALE, method="trf", x_scale="jac", max_nfev=200,
+                                         args=(h, log_y, r2), bounds=(lower, upper))
     return found.x, 2 * found.cost, found.fun
+
+
+def _tone_bounds(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds on `[log c, beta, k1', k2', k3', a, ...]` (the rest free): `beta` within `TONE_POWER`
+    (beta near 0 flattens the photo and frees the positions; past 1.5 no camera's curve goes), the
+    ambient `a >= 0` (no negative light: a < 0 deepens the falloff as a lower beta flattens it)."""
+    lower, upper = np.full(size, -np.inf), np.full(size, np.inf)
+    lower[1], upper[1] = TONE_POWER
+    lower[2 + VIGNETTING_TERMS] = 0.0
+    return lower, upper
 
 
 def scan_distances(image, scene: Scene, shadows, positions, shading, *, box=None, points: int = 41,
@@ -383,9 +397,7 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         return loss
 
     z = np.concatenate([params, scan.positions.reshape(-1)])
-    lower, upper = np.full(len(z), -np.inf), np.full(len(z), np.inf)
-    lower[1], upper[1] = TONE_POWER  # (beta near 0 flattens the photo and frees the positions)
-    lower[2 + VIGNETTING_TERMS] = 0.0  # no negative light: a < 0 deepens the falloff as a lower beta flattens it
+    lower, upper = _tone_bounds(len(z))
     if box is not None:
         lower[Q:], upper[Q:] = np.tile(box[0], L), np.tile(box[1], L)
     z = np.clip(z, lower + 1e-9, upper - 1e-9)
