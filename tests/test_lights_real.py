@@ -303,6 +303,22 @@ def test_a_fill_light_is_the_ambient_and_no_ambient_is_not_negative(faulty_desk)
         assert gap @ np.linalg.solve(found.covariance[0], gap) < scipy.stats.chi2.ppf(0.95, 3), (gap, found.covariance)
 
 
+def test_a_curve_no_camera_has_is_warned_of(faulty_desk):
+    """The desk's photo taken back through its tone curve and encoded with a power of 2 (steeper
+    than linear, no camera's): the joint fit stops at the end of `TONE_POWER` and says so; the
+    photo's own curve (1/2.2) is not warned of (`test_the_falloff_places_the_lamp_...`)."""
+    scene, shadows, photo, _ = faulty_desk
+    anchor = sh._search.occluder_centre(scene)
+    true = np.linalg.norm(LIGHT - anchor)
+    prior = _direction_prior((LIGHT - anchor) / true, 1.0, true)
+    steep = photo.astype(np.float64) ** (2.2 * 2.0)
+    found = sh.fit_falloff(steep, scene, shadows, LIGHT[None], sh.smooth_shading(steep, np.asarray(shadows.pixels)),
+                           prior[None], resamples=0)
+    assert found.beta >= 0.99 * sh._photometric.TONE_POWER[1], found.beta
+    notes = sh._fit._falloff_notes(found)
+    assert any("power" in note and "no camera's curve" in note for note in notes), notes
+
+
 def test_light_the_scene_lacks_is_warned_of(faulty_desk):
     """A bright patch on the desk that no modelled lamp makes (10% at its centre, 10 pixels wide: a
     wall's light, a reflection) pulls the lamp centimetres off; the falloff's residual is then

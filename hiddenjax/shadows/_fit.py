@@ -18,7 +18,7 @@ import optimistix as optx
 
 from ..scene import Camera, Scene
 from ._polish import polish_lights
-from ._photometric import FalloffFit, fit_falloff
+from ._photometric import TONE_POWER, FalloffFit, fit_falloff
 from ._receiver import object_clearance, smooth_shading
 from ._search import _occluder_bounds, check_outside, hard_fit, occluder_centre, search_lights
 from ._shading import ShadowScene, light_images
@@ -263,7 +263,9 @@ CORRELATION_LIMIT = 25.0  # pixels: a falloff residual correlated over a larger 
 
 def _falloff_notes(found) -> list[str]:
     """Sentences about a falloff fit (`FalloffFit`) not to trust: stopped at its evaluation limit
-    (`FalloffFit.converged` false), or its last residual correlated over more
+    (`FalloffFit.converged` false), its tone curve's power at an end of `TONE_POWER` (within 1%: no
+    camera's curve, the photo's brightness explained by the curve rather than by the lamps), or its
+    last residual correlated over more
     than `CORRELATION_LIMIT` pixels (`FalloffFit.misfit`; about 1 where the lamps, tone curve and
     vignetting explain the photo and only its noise is left), the brightness holding light the fit
     does not place. On the faulty desk photos the two lost lamps (36.7 and 72 degrees off, the latter
@@ -276,6 +278,11 @@ def _falloff_notes(found) -> list[str]:
                      "the fitted lamps, tone curve and vignetting explain the photo): its brightness holds light or "
                      "structure the fit does not place (a lamp lost, more lamps than --count, light the scene lacks, "
                      "a textured or glossy receiver); the lights may be farther off than their cones and intervals say")
+    if not TONE_POWER[0] * 1.01 < found.beta < TONE_POWER[1] * 0.99:
+        notes.append(f"the tone curve's fitted power {found.beta:.3g} is at an end of the range searched "
+                     f"({TONE_POWER[0]}-{TONE_POWER[1]}, gamma {1 / TONE_POWER[1]:.2g}-{1 / TONE_POWER[0]:.2g}): no "
+                     "camera's curve; the photo's brightness is not the lamps' falloff (a lamp lost, light the scene "
+                     "lacks, an edited photo), and the distances may be off by more than their intervals")
     if not found.converged:
         notes.append("the fit of the lamps' falloff stopped at its evaluation limit before it converged: the "
                      "distances and their intervals are where it stopped, not at the best fit; a start near "
