@@ -283,7 +283,7 @@ def _refined_inverse_factor(A, grid, ls, lr, chunk, passes: int, columns=None, w
     n = A.shape[1]
     gram = gram_matrix(A, chunk=chunk)
     eps = jnp.finfo(A.dtype).eps
-    shift = jnp.sqrt(eps) * jnp.trace(gram) / (1 if wide else N)  # the trace, or the mean of diag(A^T A) over every column
+    shift = jnp.sqrt(eps) * jnp.trace(gram) / (1 if wide else N)  # the trace, or the mean of diag(A^T A)
     factor = cholesky(gram + (lr + shift) * jnp.eye(n, dtype=A.dtype) if ls is None
                       else gram + prior_matrix(grid, ls, lr + shift, A.dtype))
     del gram

@@ -27,9 +27,10 @@ Pixels at the photo's maximum (within `SATURATION`) are clipped and left out. It
 is fitted by robust least squares (`soft_l1`, scale 0.1 in log radiance: what the shadows'
 trimming misses counts little), with `beta` within `TONE_POWER` (0.25-1.5: no camera's tone curve
 is much steeper than linear, and with a bound at 2.5 a two-lamp fit could trade one lamp's falloff
-for a steep curve and lose that lamp) and the ambient `a >= 0` (below), for each candidate position of one light along its ray from the
-occluders' centre, the others held: `p + t e`, `e` the unit direction from that centre to `p`
-(the direction the ratio fit found is kept; the shadows' pixels are left out). The
+for a steep curve and lose that lamp) and the ambient `a >= 0` (below), for each candidate
+position of one light along its ray from the occluders' centre, the others held: `p + t e`, `e`
+the unit direction from that centre to `p` (the direction the ratio fit found is kept; the
+shadows' pixels are left out). The
 best `t` over a grid, refined by a parabola, is the distance; the profile of the loss over `t`
 gives its interval, `{t : (rss(t) - rss_min) / (s^2 kappa) <= chi2_1(level)}`, with `s^2` the
 robust loss per pixel at the best `t` and `kappa` the residual's correlation area
