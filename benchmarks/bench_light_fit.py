@@ -47,7 +47,6 @@ from pathlib import Path
 
 import matplotlib
 import numpy as np
-import scipy.stats
 
 import hiddenjax as hj
 from _report import Table, finish_plot  # noqa: E402
@@ -109,13 +108,12 @@ def _seen(u, light):
 def _coverage(u, angle, distance) -> dict:
     """Whether the truth lies in the 95% cone and distance interval of one row `u` of
     `light_uncertainty` (`inside`), in each on its own, and the distance error in standard deviations
-    (the interval's half-width over `z_0.975`); without a covariance not inside, the rest None."""
+    (`sigma`); without a covariance not inside, the rest None."""
     if u["angle"] is None:
         return dict(inside=False, inside_cone=None, inside_interval=None, distance_z=None)
-    sigma = (u["interval"][1] - u["interval"][0]) / (2 * scipy.stats.norm.ppf(0.975))
     cone, interval = bool(angle <= u["angle"]), bool(u["interval"][0] <= distance <= u["interval"][1])
     return dict(inside=cone and interval, inside_cone=cone, inside_interval=interval,
-                distance_z=float((u["distance"] - distance) / sigma))
+                distance_z=float((u["distance"] - distance) / u["sigma"]))
 
 
 def _inside(fit, scene, light) -> bool:

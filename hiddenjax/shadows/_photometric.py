@@ -101,6 +101,7 @@ SATURATION = 1e-3  # a pixel within this fraction of the photo's maximum is clip
 VIGNETTING_TERMS = 3  # k1 r^2 + k2 r^4 + k3 r^6: two terms leave 2% at a corner of (1 - 0.35 r^2)
 BOUNCE_RAYS = 256  # stratified cosine-distributed rays per pixel for the objects' bounce light (module docstring)
 RESAMPLES = 6  # refits with the bounce light drawn again, whose spread joins the covariance
+SHARE_SIGMA = float(np.log(2.0))  # the shadows' read of each light's share at the objects: within a factor 2 (1 sd)
 BOUNCE_BLUR = 2.0  # pixels: the bounce light's Monte Carlo estimate is smoothed over this (a Gaussian sigma)
 NOISE_WIDTH = 8.0  # pixels: the photo's noise is measured over this (a Gaussian sigma of the squared residual)
 
@@ -139,7 +140,8 @@ class FalloffFit(NamedTuple):
     hundreds where its brightness holds light the fit does not place (`correlation` is the same
     measure taken before the prior's check, where a shadow that disagrees can still pull);
     `ambient` the constant light `a >= 0` beside the lamps, over their mean lit radiance (room light,
-    a wall's glow)."""
+    a wall's glow); `resamples` the number of refits behind `resampled` (its sample covariance has
+    `resamples - 1` degrees of freedom, which `light_uncertainty` carries into its intervals)."""
 
     positions: np.ndarray
     covariance: np.ndarray
@@ -153,6 +155,7 @@ class FalloffFit(NamedTuple):
     scan: DistanceScan
     misfit: float
     ambient: float
+    resamples: int = 0
 
 
 class _Brightness:
@@ -332,7 +335,8 @@ def _scan(b: _Brightness, positions, box, points: int, sweeps: int, level: float
 
 
 def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=None, placement: float = 0.0,
-                resamples: int = RESAMPLES, points: int = 25, max_evaluations: int = 200) -> FalloffFit:
+                resamples: int = RESAMPLES, points: int = 25, max_evaluations: int = 200,
+                intensities=None) -> FalloffFit:
     """The lights' positions from the photo's brightness, the shadows' directions as a prior (module
     docstring): a scan along each light's ray from the occluders' centre through `positions (L, 3)`
     (`scan_distances`; with several lights two sweeps, each light scanned again once the others are
@@ -349,11 +353,18 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     spread joins the covariance (`FalloffFit.resampled`; 0: the Gauss-Newton covariance alone).
     `max_evaluations` bounds each joint fit (two lamps started 15 cm off need about 180); one that
     stops there is reported (`FalloffFit.converged`), its covariance being that of a point that is
-    not the optimum.
+    not the optimum. `intensities (L,)`, the lights' intensities from the shadows at `positions` (the
+    polish's), give each light's share of the light at the objects (module docstring: the shadows'
+    depths fix it, the falloff alone does not see it); default none.
     """
     positions = np.array(positions, np.float64)
     L = len(positions)
     prior = np.asarray(prior, np.float64)
+    if intensities is not None:
+        intensities = np.asarray(intensities, np.float64)
+        if intensities.shape != (L,) or not np.all(np.isfinite(intensities)) or np.any(intensities < 0):
+            raise ValueError(f"intensities must be one finite intensity >= 0 per light, shape {(L,)}, got "
+                             f"{intensities.shape}")
     if not (np.isfinite(placement) and placement >= 0):
         raise ValueError(f"placement must be a finite distance >= 0 in metres, got {placement}")
     if int(max_evaluations) != max_evaluations or max_evaluations < 1:
@@ -374,6 +385,11 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         directions.append(d)
         shadow_priors.append((vectors[:, 1:].T, np.maximum(values[1:], 1e-12)))  # (axes across it, variances)
     priors = list(shadow_priors)
+    # each light's share of the light at the objects from the shadows, `log(I_l / |p_l - c|^2)` against the
+    # first light's (lights the shadows gave no light are left free)
+    irradiance = lambda I, p: np.log(np.maximum(I, 1e-300)) - np.log(np.sum((p - b.anchor) ** 2, axis=1))
+    shared = np.zeros(0, int) if intensities is None or intensities[0] <= 0 else np.nonzero(intensities[1:] > 0)[0] + 1
+    shares = (irradiance(intensities, positions) - irradiance(intensities, positions)[0])[shared] if shared.size else None
 
     def photo_rows(z, brightness):
         return _log_residual(z[:Q], brightness.images(z[Q:].reshape(L, 3), np.arange(L)), brightness.log_y,
@@ -382,8 +398,12 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     def residuals(z, weight, brightness):
         v = z[Q:].reshape(L, 3) - b.anchor
         u = v / np.maximum(np.linalg.norm(v, axis=1), 1e-300)[:, None]
-        return np.concatenate([weight * photo_rows(z, brightness), *((E @ (u[l] - directions[l])) / np.sqrt(variances)
-                                                         for l, (E, variances) in enumerate(priors))])
+        rows = [weight * photo_rows(z, brightness), *((E @ (u[l] - directions[l])) / np.sqrt(variances)
+                                                      for l, (E, variances) in enumerate(priors))]
+        if shares is not None:  # log(w_l / |p_l - c|^2) - log(1 / |p_1 - c|^2), w_l = exp(q_l)
+            logs = np.concatenate([[0.0], z[3 + VIGNETTING_TERMS: Q]]) - np.log(np.sum(v**2, axis=1))
+            rows.append(((logs - logs[0])[shared] - shares) / SHARE_SIGMA)
+        return np.concatenate(rows)
 
     def rows_loss(weight):  # soft_l1 on the photo's rows (scale LOG_SCALE in log radiance), squares on the prior's
         c2, N = (LOG_SCALE * weight) ** 2, len(weight)
@@ -461,7 +481,8 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     noise = float(np.median(local))
     misfit = residual_correlation(photo_rows(found.x, b) / local, b.pixels, b.shape)
     return FalloffFit(positions, blocks(covariance), beta, vignetting, float(kappa), noise, scales,
-                      blocks(resampled), bool(found.status != 0), scan, float(misfit), float(q[2 + VIGNETTING_TERMS]))
+                      blocks(resampled), bool(found.status != 0), scan, float(misfit), float(q[2 + VIGNETTING_TERMS]),
+                      int(resamples))
 
 
 def _moved_objects(scene: Scene, placement: float, normals, rng) -> Scene:
