@@ -337,6 +337,35 @@ def test_light_the_scene_lacks_is_warned_of(faulty_desk):
     assert any(note.startswith("the lamps' falloff leaves a residual correlated") for note in sh._fit._falloff_notes(found))
 
 
+def test_two_lamps_keep_their_shares_of_the_light():
+    """Two lamps of equal intensity over the desk (an Embree photo with two bounces, vignetted,
+    gamma 2.2), the fit started at 1.5 times each lamp's distance along its shadow's direction: given
+    the lamps' intensities as the shadows read them (equal, or the second 1.5 times too bright),
+    the falloff fit places both lamps within 1 degree and 5% of their distances. Intensities that
+    are not one per lamp, or negative, are refused."""
+    scene, camera = desk(size=(96, 72))
+    lamps = np.array([LIGHT, [-0.2, 0.3, -0.35]])
+    photo = hj.render_point_lights(scene, camera, lamps, [0.05, 0.05], pixel_samples=4, bounces=2, bounce_rays=64)
+    photo = np.clip(photo * (1 - 0.3 * _radius2(72, 96)) / np.percentile(photo, 99.5), 0, 1) ** (1 / 2.2)
+    shadows = sh.ShadowScene.from_scene(scene, camera, sh.object_clearance(scene, camera, 0.005))
+    shading = sh.smooth_shading(photo, np.asarray(shadows.pixels))
+    anchor = sh._search.occluder_centre(scene)
+    true = np.linalg.norm(lamps - anchor, axis=1)
+    directions = (lamps - anchor) / true[:, None]
+    starts = anchor + 1.5 * true[:, None] * directions
+    prior = np.stack([_direction_prior(d, 1.0, 1.5 * t) for d, t in zip(directions, true)])
+    fit = lambda intensities: sh.fit_falloff(photo, scene, shadows, starts, shading, prior, resamples=0,
+                                             intensities=intensities)
+    for intensities in ([1.0, 1.0], [1.0, 1.5]):
+        found = fit(np.array(intensities))
+        v = found.positions - anchor
+        angles = np.degrees(np.arccos(np.clip(np.sum(v * directions, axis=1) / np.linalg.norm(v, axis=1), -1, 1)))
+        assert np.all(angles < 1.0) and np.all(np.abs(np.linalg.norm(v, axis=1) / true - 1) < 0.05), (
+            intensities, angles, np.linalg.norm(v, axis=1) / true)
+    for bad in ([1.0], [1.0, -1.0], [1.0, np.nan]):
+        with pytest.raises(ValueError, match="intensities must be one finite intensity"):
+            fit(np.array(bad))
+
 def test_the_refits_spread_grows_with_the_objects_placement_and_joins_the_covariance(faulty_desk):
     """The scene file puts the pencil and the cup 6 mm off their places. The refits with the bounce
     light drawn again (new rays, the objects moved by a Gaussian of `placement`) add their spread to
