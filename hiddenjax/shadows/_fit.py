@@ -148,7 +148,8 @@ def fit_lights(
       (`smooth_shading`: vignetting, a tone curve's slope, a falloff the scene does not know) as if
       it were the reference photo, which places each light's direction; then `fit_falloff` places
       the lights in the photo's brightness (the lamp's falloff through a fitted tone curve and
-      vignetting) with those directions as a prior, its covariance widened by refits with the
+      vignetting) with those directions as a prior (and each lamp's share of the light at the
+      objects as the shadows' depths read it, `intensities`), its covariance widened by refits with the
       objects' bounce light drawn again (the objects moved by half the `clearance`). For real
       photos without a reference. Default none.
     - `box (2, 3)`: the region the search looks in without `init`, min and max corners in metres
