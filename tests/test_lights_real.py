@@ -471,6 +471,8 @@ def test_lights_on_a_faulty_8bit_photo_of_any_size(tmp_path, capsys):
     assert angle < 2.5, (angle, found)
     assert abs(light["distance"] / np.linalg.norm(true) - 1) < 0.1, found
     assert light["angle_95"] > 0 and light["distance_95"][0] < light["distance"] < light["distance_95"][1]
+    half = scipy.stats.t.ppf(0.975, light["dof"][0]) if light["dof"][0] else scipy.stats.norm.ppf(0.975)
+    assert np.isclose(light["distance_95"][1] - light["distance"], half * light["distance_sd"], rtol=1e-9), light
     response = found["camera_response"]  # the photo was encoded with gamma 2.0 and vignetted by 1 - 0.3 r^2
     assert abs(response["gamma"] / 2.0 - 1) < 0.1 and response["vignetting"][0] < 0 and response["converged"], response
     assert 0 <= response["refits_share"][0] < 1 and response["prior_scale"][0] >= 1, response

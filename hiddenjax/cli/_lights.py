@@ -149,7 +149,9 @@ def lights(args) -> dict:
     inner = cv2.erode(fitted.reshape(grey.shape), np.ones((3, 3), np.uint8)).astype(bool)
     residual = float(np.sqrt(np.mean((model[inner] - grey[inner]) ** 2) / np.mean(grey[inner] ** 2)))
     seen = [dict(direction=u["direction"].tolist(), distance=u["distance"], from_point=u["anchor"].tolist(),
-                 angle_95=u["angle"], distance_95=None if u["interval"] is None else u["interval"].tolist())
+                 angle_95=u["angle"], distance_95=None if u["interval"] is None else u["interval"].tolist(),
+                 distance_sd=u["sigma"], dof=None if u["dof"] is None else [float(x) if np.isfinite(x) else None
+                                                                           for x in u["dof"]])
             for u in _shadows.light_uncertainty(fit, spec.scene)]
     results = dict(positions=fit.positions.tolist(), intensities=fit.intensities.tolist(), ambient=fit.ambient,
                    channel_intensities=None if fit.channel_intensities is None else fit.channel_intensities.tolist(),
