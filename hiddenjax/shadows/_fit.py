@@ -226,7 +226,7 @@ def fit_lights(
         prior = _with_placement(covariance, positions, scene, clearance)
         found = fit_falloff(image, scene, shadows, positions, reference, prior, box=box_used,
                             placement=0.5 * (clearance or 0.0),  # (the spread `_with_placement` gives the objects)
-                            intensities=np.asarray(intensities, np.float64).reshape(len(positions), -1).mean(axis=1))
+                            intensities=intensities)
         positions, covariance = found.positions, found.covariance
         trajectory.append(positions)
     notes = _distrust(positions, a, float(scale), None if searched is None else searched.box, shading == "smooth")
@@ -345,8 +345,7 @@ def light_uncertainty(fit: "LightFit", scene: Scene, level: float = 0.95) -> lis
     import scipy.stats
 
     anchor = occluder_centre(scene)
-    falloff = getattr(fit, "falloff", None)
-    refits = 0 if falloff is None else int(falloff.resamples)
+    refits = 0 if fit.falloff is None else int(fit.falloff.resamples)
     out = []
     for j, p in enumerate(np.asarray(fit.positions, np.float64)):
         v = p - anchor
@@ -355,22 +354,29 @@ def light_uncertainty(fit: "LightFit", scene: Scene, level: float = 0.95) -> lis
         row = dict(anchor=anchor, direction=d, distance=distance, sigma=None, angle=None, interval=None, dof=None)
         if fit.covariance is not None:
             S = np.asarray(fit.covariance[j], np.float64)
-            R = np.asarray(falloff.resampled[j], np.float64) if refits >= 2 else np.zeros((3, 3))
+            R = np.asarray(fit.falloff.resampled[j], np.float64) if refits >= 2 else np.zeros((3, 3))
             P = np.eye(3) - np.outer(d, d)
             values, vectors = np.linalg.eigh(P @ S @ P)
             w, lam = vectors[:, -1], max(float(values[-1]), 0.0)
             along = max(float(d @ S @ d), 0.0)
             dof = (_satterthwaite(along, float(d @ R @ d), refits - 1), _satterthwaite(lam, float(w @ R @ w), refits - 1))
-            q1 = (scipy.stats.norm.ppf(0.5 + level / 2) if np.isinf(dof[0])
-                  else scipy.stats.t.ppf(0.5 + level / 2, dof[0]))
-            flat = scipy.stats.norm.ppf(0.5 + level / 2) if np.isinf(dof[1]) else scipy.stats.t.ppf(0.5 + level / 2, dof[1])
-            q2 = max(scipy.stats.chi2.ppf(level, 2), flat**2)
+            q1 = _two_sided(level, dof[0])
+            q2 = max(scipy.stats.chi2.ppf(level, 2), _two_sided(level, dof[1]) ** 2)
             sigma = float(np.sqrt(along))
             row["sigma"], row["dof"] = sigma, np.array(dof)
             row["angle"] = float(np.degrees(np.arctan2(np.sqrt(q2 * lam), distance)))
             row["interval"] = np.array([distance - q1 * sigma, distance + q1 * sigma])
         out.append(row)
     return out
+
+
+def _two_sided(level: float, dof: float) -> float:
+    """The two-sided `level` quantile of Student's t with `dof` degrees of freedom (the Gaussian's
+    where `dof` is infinite)."""
+    import scipy.stats
+
+    p = 0.5 + level / 2
+    return float(scipy.stats.norm.ppf(p) if np.isinf(dof) else scipy.stats.t.ppf(p, dof))
 
 
 def _satterthwaite(total: float, sampled: float, dof: int) -> float:

@@ -396,7 +396,10 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     # first light's (lights the shadows gave no light are left free)
     irradiance = lambda I, p: np.log(np.maximum(I, 1e-300)) - np.log(np.sum((p - b.anchor) ** 2, axis=1))
     shared = np.zeros(0, int) if intensities is None or intensities[0] <= 0 else np.nonzero(intensities[1:] > 0)[0] + 1
-    shares = (irradiance(intensities, positions) - irradiance(intensities, positions)[0])[shared] if shared.size else None
+    shares = None
+    if shared.size:
+        e0 = irradiance(intensities, positions)
+        shares = (e0 - e0[0])[shared]
 
     def photo_rows(z, brightness):
         return _log_residual(z[:Q], brightness.images(z[Q:].reshape(L, 3), np.arange(L)), brightness.log_y,
