@@ -2,7 +2,8 @@
 dataset, training and refinement speed.
 
     python benchmarks/bench_corners.py [--quick] [--out DIR] [--fresh N] [--seed S] [--shipped-only]
-        [--refine] [--settings fixed-lamp random-lamp] [--kinds L T table] [--mismatch N]
+        [--refine] [--lamp background|box] [--settings fixed-lamp random-lamp] [--kinds L T table]
+        [--mismatch N]
 
 Shipped networks (`hj.corners.pretrained`, issue 57): each class and setting scored on `--fresh`
 scenes (default 1000) drawn from a seed range the training never used (`generate_dataset(seed=7)`:
@@ -14,10 +15,12 @@ With `--refine`, every fresh scene's estimate is also refined against the render
 (`refine_corner`, thesis 3.5.2). The renderer is the scene as a corner file would describe it
 together with its surfaces: the walls, clutter, textures, camera and (lamp fixed) the lamp are the
 scene's; the hidden object is `TYPICAL_OBJECT` (its radius and height fitted, its brightness the
-loss' scale), and with the lamp drawn per scene the lamp starts at the middle of `LAMP_BOX` and is
-fitted in it. The rows of `shipped.json` gain `refined_errors` (the same table as `errors`),
-`refined_worse_share` (scenes made worse by more than 1 cm), `accepted_share` and the seconds per
-refined frame; `refined.png` plots each scene's network error against its refined error.
+loss' scale). With the lamp drawn per scene, `--lamp background` (the default) reads it off a frame
+of the empty corner first (`fit_lamp`; the frame path-traced with the scene's lamp, 64 bounce
+samples per pixel, as every differential frame's background would be) and refines with it fixed;
+`--lamp box` starts it at the middle of `LAMP_BOX` and fits it with the place in every frame. The rows of `shipped.json` gain `refined_errors` (the same table as `errors`),
+`refined_worse_share` (scenes made worse by more than 1 cm), `accepted_share`, the seconds per
+refined frame and, with the lamp read off the background, `lamp_errors_cm` and `lamp_seconds`; `refined.png` plots each scene's network error against its refined error.
 
 `--mismatch N` (thesis 3.5.3: the real scenes scored 8-10 cm, mostly from the gap between the
 rendered and the real corner) refines N fresh L and T scenes (lamp fixed) against a model of the
@@ -80,6 +83,9 @@ def main(argv=None):
     parser.add_argument("--mismatch", type=int, default=0, metavar="N",
                         help="refine N fresh L and T scenes against a corner model that is off, one fault at a time")
     parser.add_argument("--faults", nargs="+", default=list(FAULTS), choices=FAULTS, help="--mismatch: which faults")
+    parser.add_argument("--lamp", choices=("background", "box"), default="background",
+                        help="--refine with the lamp drawn per scene: read it off a frame of the empty corner (default) "
+                             "or fit it in LAMP_BOX with every frame's place")
     parser.add_argument("--aim", type=int, default=0, help="refine_corner's aim: the camera's aim fitted as an image "
                         "shift within +-AIM pixels (default 0)")
     args = parser.parse_args(argv)
@@ -93,7 +99,7 @@ def main(argv=None):
         (args.out / "mismatch.json").write_text(json.dumps(mismatch, indent=2))
         return mismatch
     shipped = shipped_networks(args.fresh or (24 if quick else 1000), seed=args.seed, refine=args.refine,
-                               settings=args.settings, kinds=args.kinds, out=args.out, aim=args.aim)
+                               settings=args.settings, kinds=args.kinds, out=args.out, aim=args.aim, lamp=args.lamp)
     (args.out / "shipped.json").write_text(json.dumps(shipped, indent=2))
     if args.shipped_only:
         return shipped
@@ -193,12 +199,12 @@ TARGET_RANDOM_LAMP_CM = 4.0  # issue 57: every class in the randomized-lamp sett
 
 
 def shipped_networks(count: int, *, seed: int = 7, refine: bool = False, settings=hc.SETTINGS,
-                     kinds=hc.SCENE_CLASSES, out=None, aim: int = 0) -> dict:
+                     kinds=hc.SCENE_CLASSES, out=None, aim: int = 0, lamp: str = "background") -> dict:
     """Each shipped network on `count` fresh scenes of its class and setting; `track`'s throughput."""
     table = Table()
     table.append(("class", "setting", "d (cm)", "theta (rad)", "rho (cm)", "thesis d / theta / rho", "target d",
                   "held out in training"))
-    result = dict(count=count, seed=seed, aim=aim, rows=[])
+    result = dict(count=count, seed=seed, aim=aim, lamp=lamp, rows=[])
     scatter = []
     for setting in settings:
         for kind in kinds:
@@ -220,7 +226,7 @@ def shipped_networks(count: int, *, seed: int = 7, refine: bool = False, setting
             row = dict(kind=kind, setting=setting, errors=e, target_cm=target, met=met == "met",
                        held_out_d_cm=info["validation"]["d"]["mean"])
             if refine:
-                row.update(refined_rows(kind, setting, data, loc, seed, aim))
+                row.update(refined_rows(kind, setting, data, loc, seed, aim, lamp))
                 r = row["refined_errors"]
                 table.append((kind, f"{setting}, refined", f"**{r['d']['mean']:.2f}** ± {r['d']['std']:.2f} "
                               f"(median {r['median_d']:.2f})", f"{r['theta']['mean']:.3f} ± {r['theta']['std']:.3f}",
@@ -250,16 +256,25 @@ def model_scene(scene, setting: str):
     return dataclasses.replace(scene, hidden=hc.TYPICAL_OBJECT, lamp=lamp)
 
 
-def refined_rows(kind: str, setting: str, data, loc, seed: int, aim: int = 0) -> dict:
-    """`refine_corner` on every scene of a fresh dataset: the refined error table and what it cost."""
+def refined_rows(kind: str, setting: str, data, loc, seed: int, aim: int = 0, lamp_source: str = "background") -> dict:
+    """`refine_corner` on every scene of a fresh dataset: the refined error table and what it cost.
+
+    With the lamp drawn per scene, `lamp_source` `"background"` reads it off a frame of the empty corner
+    (`fit_lamp`) and keeps it fixed; `"box"` fits it in `LAMP_BOX` with each frame's place."""
     size, lamp = data.images.shape[-1], hc.setting_lamp(setting)
-    refined, accepted, seconds = [], [], []
+    refined, accepted, seconds, lamp_errors, lamp_seconds = [], [], [], [], []
     for i, image in enumerate(data.images):
         scene = hc.random_corner_scene(kind, seed * 1_000_003 + i, width=size, height=size, lamp=lamp)
         assert np.allclose(scene.hidden.position, data.positions[i], atol=1e-6)  # the dataset's scene
-        out = hc.refine_corner(hc.DifferentialRenderer(model_scene(scene, setting)), image, loc.position[i],
-                               loc.cov[i], heatmap=loc.heatmap[i], lamp_box=hc.LAMP_BOX if lamp is None else None,
-                               aim=aim, seed=i)
+        model, box = model_scene(scene, setting), hc.LAMP_BOX if lamp is None else None
+        if box is not None and lamp_source == "background":
+            background = hc.render_full(scene, with_object=False, samples=64, seed=seed * 1_000_003 + i)
+            fitted = hc.fit_lamp(model, background, surface_scales=False)  # the model knows the albedos
+            model, box = dataclasses.replace(model, lamp=fitted.lamp), None
+            lamp_errors.append(float(100 * np.linalg.norm(fitted.lamp - scene.lamp)))
+            lamp_seconds.append(fitted.seconds)
+        out = hc.refine_corner(hc.DifferentialRenderer(model), image, loc.position[i], loc.cov[i],
+                               heatmap=loc.heatmap[i], lamp_box=box, aim=aim, seed=i)
         refined.append(out.position)
         accepted.append(out.accepted)
         seconds.append(out.seconds)
@@ -274,7 +289,10 @@ def refined_rows(kind: str, setting: str, data, loc, seed: int, aim: int = 0) ->
                 accepted_share=float(np.mean(accepted)),
                 refine_seconds=dict(mean=float(np.mean(seconds)), median=float(np.median(seconds)),
                                     max=float(np.max(seconds))),
-                network_d_cm=(network_d * 100).tolist(), refined_d_cm=(refined_d * 100).tolist())
+                network_d_cm=(network_d * 100).tolist(), refined_d_cm=(refined_d * 100).tolist(),
+                **(dict(lamp_errors_cm=lamp_errors, lamp_seconds=dict(mean=float(np.mean(lamp_seconds)),
+                                                                     max=float(np.max(lamp_seconds))))
+                   if lamp_errors else {}))
 
 
 def _faulty_renderer(scene, fault: str, rng):

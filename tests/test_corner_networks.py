@@ -228,6 +228,29 @@ def test_corner_command_refines_with_a_measured_corner(walk, tmp_path):
     assert np.all(np.isfinite(truth))
 
 
+def test_corner_command_reads_an_unknown_lamp_off_the_background(tmp_path):
+    """Random-lamp setting, no lamp in the corner file: the lamp is fitted to the empty frame (each surface's
+    brightness free: the file has no albedos) before the albedo is read off it, and every refinement keeps it."""
+    scene = hc.random_corner_scene("L", 10**9 + 10, width=SIZE, height=SIZE, lamp=None)  # textured, cluttered
+    empty = hc.render_full(scene, with_object=False, samples=32, seed=1)
+    hj.io.write_exr(tmp_path / "empty.exr", empty.astype(np.float32))
+    frame = empty + hc.DifferentialRenderer(scene).render(samples=32, seed=2)
+    hj.io.write_exr(tmp_path / "f0.exr", frame.astype(np.float32))
+    p, o, t = scene.params, scene.params["camera_origin"], scene.params["camera_target"]
+    toml = (f'[corner]\nclass = "L"\nsetting = "random-lamp"\n[corner.camera]\norigin = {list(o)}\n'
+            f'target = {list(t)}\nfov = {p["fov"]}\n[corner.geometry]\n'
+            + "".join(f"{k} = {p[k]}\n" for k in hc.GEOMETRY_KEYS["L"]))
+    (tmp_path / "corner.toml").write_text(toml)
+    status, _, err = _run(["corner", str(tmp_path / "empty.exr"), str(tmp_path / "f0.exr"), "-o", str(tmp_path / "r"),
+                           "--corner", str(tmp_path / "corner.toml"), "--linear", "--refine", "--quiet"])
+    assert status == 0, err
+    result = json.loads((tmp_path / "r" / "track.json").read_text())
+    fit, (refined,) = result["lamp_fit"], result["refined"]
+    start = np.linalg.norm(np.mean(hc.LAMP_BOX, 0) - scene.lamp)  # 24 cm
+    assert np.linalg.norm(np.asarray(fit["lamp"]) - scene.lamp) < min(0.03, start / 4)
+    assert refined["lamp"] == pytest.approx(fit["lamp"]) and fit["seconds"] > 0
+
+
 @pytest.mark.parametrize("case,words", [
     ("sizes", "frames of different sizes"),
     ("no class", "which corner? give --class"),

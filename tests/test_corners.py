@@ -501,3 +501,36 @@ def test_calibrated_renderer_reads_the_surfaces_albedo_off_a_frame_of_the_empty_
         plain.calibrated(background[:32])
     with pytest.raises(ValueError, match="brighter than zero"):
         plain.calibrated(np.zeros_like(background))
+
+
+@pytest.fixture(scope="module")
+def empty_corner():
+    """A T scene (lamp drawn in `LAMP_BOX`) at 64x64 and a frame of it without the object (32 bounce samples)."""
+    scene = hc.random_corner_scene("T", 11 * 1_000_003 + 1, width=64, height=64, lamp=None)
+    return scene, hc.render_full(scene, with_object=False, samples=32, seed=5)
+
+
+def test_fit_lamp_reads_the_lamp_off_a_frame_of_the_empty_corner(empty_corner):
+    scene, background = empty_corner
+    model = dataclasses.replace(scene, lamp=np.mean(hc.LAMP_BOX, 0))  # the lamp is not used
+    fit = hc.fit_lamp(model, background, surface_scales=False, lattice=3, searches=2)  # the albedos known
+    assert np.linalg.norm(fit.lamp - scene.lamp) < 0.02  # measured: 1.0 cm, from 23 cm off (the box's middle)
+    each = hc.fit_lamp(model, background, lattice=3, searches=2)  # each surface's brightness unknown: less to go on
+    assert np.linalg.norm(each.lamp - scene.lamp) < 0.05  # measured: 3.2 cm
+    assert np.all((fit.lamp >= np.asarray(hc.LAMP_BOX[0])) & (fit.lamp <= np.asarray(hc.LAMP_BOX[1])))
+    off = dataclasses.replace(scene, lamp=np.asarray(scene.lamp) + [0.05, 0.0, 0.0])
+    assert hc.scale_free_loss(hc.render_full(off, with_object=False, samples=4), background, 4) > 2 * fit.loss  # 0.028, 0.004
+    assert fit.renders > 27 and fit.seconds > 0
+
+
+def test_fit_lamp_rejects_bad_input(empty_corner):
+    scene, background = empty_corner
+    for kwargs, message in ((dict(background=background[:32]), "the corner's camera"),
+                            (dict(background=np.zeros_like(background)), "brighter than zero"),
+                            (dict(background=np.where(background > 0, np.nan, 0.0)), "finite"),
+                            (dict(box=((0, 0, 0), (1, -1, 1))), "low <= high"),
+                            (dict(lattice=0), "lattice"),
+                            (dict(resolution=0.0), "resolution > 0")):
+        args = dict(background=background) | kwargs
+        with pytest.raises(ValueError, match=message):
+            hc.fit_lamp(scene, args.pop("background"), **args)

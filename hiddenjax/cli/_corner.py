@@ -1,6 +1,7 @@
 """`hiddenjax corner`: a hidden object around a corner from frames of the floor."""
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -113,8 +114,13 @@ def corner(args) -> dict:
     estimates = [dict(frame=int(f), x=float(p[0]), z=float(p[1]), theta=float(q[0]), rho=float(q[1]),
                       cov=c.tolist(), sigma=np.sqrt(np.maximum(np.linalg.eigvalsh(c), 0)).tolist())
                  for f, p, q, c in zip(frame_index, result.position, result.polar, result.cov)]
-    refined = None
+    refined = lamp_fit = None
     if args.refine:
+        if lamp_box is not None:  # the lamp, unknown, from the frame of the empty corner (before its albedo)
+            found = _corners.fit_lamp(renderer.scene, back, lamp_box)
+            renderer = _corners.DifferentialRenderer(dataclasses.replace(renderer.scene, lamp=found.lamp))
+            lamp_box = None
+            lamp_fit = dict(lamp=found.lamp.tolist(), loss=found.loss, seconds=found.seconds)
         renderer = renderer.calibrated(back)  # the surfaces' albedo, which the corner file does not give
         means, _ = _corners.window_means(differences, args.window)
         refined, previous = [], []
@@ -134,6 +140,7 @@ def corner(args) -> dict:
     results = dict(kind=kind, setting=setting, network=info["file"], sha256=info["sha256"], frames=len(frames),
                    frame_shape=list(shape), crop=list(_corners.square_crop(*shape, crop)), mirror=mirror,
                    background=str(background), window=args.window, estimates=estimates, refined=refined,
+                   lamp_fit=lamp_fit,
                    locate_seconds=seconds, frames_per_second=len(estimates) / max(seconds, 1e-9),
                    fps=fps, units=dict(x="m", z="m", theta="rad", rho="m", cov="m^2"))
     out.mkdir(exist_ok=True)
@@ -151,7 +158,8 @@ def _refinement_renderer(kind, setting, spec, camera):
     """The measured corner's `DifferentialRenderer` and the lamp's box (`None`: the lamp is known).
 
     The lamp is the corner file's, else the fixed-lamp setting's; in the random-lamp setting
-    without one it is fitted in `LAMP_BOX`, the range the networks were trained on.
+    without one it is read off the background frame in `LAMP_BOX`, the range the networks were
+    trained on (`fit_lamp`, with the corner file's albedos, before the albedo is read off it).
     """
     if camera is None or spec.geometry is None:
         raise ValueError("--refine renders the corner: it needs [corner.camera] and [corner.geometry] in the corner "
