@@ -3,7 +3,7 @@
 A frame of the empty corner is `b(s) = rho(s)/pi E(s)`, with `E(s)` the lamp's direct light at the
 floor and walls plus its bounce between them (`render_full(with_object=False)`): where the lamp
 stands shows in how its light falls off across the floor, up the walls and into their shadows.
-With the surfaces' albedos known (the scene's, or a corner file's nominal ones) the lamp `l` is
+With the model's albedos (the scene's own, or a corner file's nominal ones: below) the lamp `l` is
 
     l* = argmin_{l in box}  1 - <r(l), b>^2 / (|r(l)|^2 |b|^2)
 
@@ -18,11 +18,12 @@ so the model's albedos need be right only within each surface (a corner file's u
 lamp is read off how its light falls off across each surface, not off how bright one surface is
 against another. On three L corners rendered with their textures and clutter and fitted with a
 corner file's uniform albedos, the lamp came 3.2, 0.4 and 12.6 cm from the truth this way and 6.9,
-2.6 and 20.6 cm with one scale. The search:
-a `lattice^3` grid over the box, then compass searches from its `searches` best points (each coordinate
-stepped up and down, the steps halved when none improves, down to `resolution`), every render with
-the same seed (common random numbers: only the bounce is Monte Carlo, and it is not re-noised
-between candidates).
+2.6 and 20.6 cm with one scale.
+
+The search: a `lattice^3` grid over the box, then compass searches from its `searches` best
+points (each coordinate stepped up and down, the steps halved when none improves, down to
+`resolution`), every render with the same seed (common random numbers: only the bounce is Monte
+Carlo, and it is not re-noised between candidates).
 
 Every differential frame is taken against such a background, so the lamp costs no extra capture:
 `refine_corner` can then keep it fixed instead of fitting it to each frame, where a lamp moved
