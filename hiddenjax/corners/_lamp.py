@@ -40,6 +40,7 @@ from ..transport._embree import RayCaster, pixel_centre_hits
 from ._refine import _blocks
 from ._render import render_full
 from ._scenes import LAMP_BOX, CornerScene
+from ._search import _compass
 
 
 class LampFit(NamedTuple):
@@ -87,7 +88,7 @@ def fit_lamp(scene: CornerScene, background, box=LAMP_BOX, *, surface_scales: bo
     renders = 0
     surface = pixel_centre_hits(RayCaster(scene.background()), scene.camera).surface.reshape(shape)
     ids = np.unique(surface[surface >= 0]) if surface_scales else [None]
-    parts = [_blocks((surface >= 0) if k is None else (surface == k).astype(np.float64), block) == 1 for k in ids]
+    parts = [_blocks((surface >= 0 if k is None else surface == k).astype(np.float64), block) == 1 for k in ids]
     b = _blocks(background, block)
     bb = sum(float(b[m] @ b[m]) for m in parts)
     if not bb > 0:
@@ -102,30 +103,12 @@ def fit_lamp(scene: CornerScene, background, box=LAMP_BOX, *, surface_scales: bo
         explained = sum(float(r[m] @ b[m]) ** 2 / float(r[m] @ r[m]) for m in parts if r[m] @ r[m] > 0)
         return 1.0 - explained / bb
 
-    axes = [np.linspace(a, b, int(lattice) + 2)[1:-1] for a, b in zip(low, high)]  # the lattice's cell centres
+    axes = [np.linspace(lo, hi, int(lattice) + 2)[1:-1] for lo, hi in zip(low, high)]  # the lattice's cell centres
     starts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     values = [loss(p) for p in starts]
-    found = [_compass(loss, starts[i].copy(), float(values[i]), (high - low) / (2 * int(lattice)), resolution, low,
-                      high) for i in np.argsort(values)[: int(searches)]]
+    step, final = (high - low) / (2 * int(lattice)), np.full(3, resolution)  # from half a lattice cell
+    found = [_compass(lambda lamp, _samples, _seed: loss(lamp), starts[i], float(values[i]), step, final, low, high,
+                      range(3), int(samples), seed) for i in np.argsort(values)[: int(searches)]]
     lamp, value = min(found, key=lambda f: f[1])
     return LampFit(lamp, value, renders, time.perf_counter() - t0)
 
-
-def _compass(loss, lamp, value: float, step, resolution: float, low, high):
-    """`(lamp, value)`: each coordinate stepped up and down from `lamp`, the steps halved when none improves."""
-    step = np.array(step, np.float64)
-    while np.any(step >= resolution):
-        moved = False
-        for k in np.nonzero(step >= resolution)[0]:
-            for sign in (1.0, -1.0):
-                trial = lamp.copy()
-                trial[k] = np.clip(trial[k] + sign * step[k], low[k], high[k])
-                if trial[k] == lamp[k]:
-                    continue
-                v = loss(trial)
-                if v < value:
-                    lamp, value, moved = trial, v, True
-                    break
-        if not moved:
-            step = step / 2
-    return lamp, value
