@@ -241,9 +241,11 @@ class DirectLighting:
             cos_centre += a[:, 1:2] * self.centres32[:, 1]
             cos_centre += a[:, 2:] * self.centres32[:, 2]
             candidate |= (cos_centre >= reach) & active[:, None]
-            cones.append((active, axis, cos_a))
+            # float32 for the per-ray test, widened by 1e-6 for its round-off (a ray the test keeps is traced)
+            cones.append((active, axis.astype(np.float32)[:, :, None], cos_a - 1e-6))
 
         m_idx, j_idx = np.nonzero(lit & candidate)
+        x = x.astype(np.float32)  # the rays' origins, gathered per ray for Embree (float32 there)
         delta = np.zeros(len(m_idx))
         lobe_delta = np.zeros(len(m_idx)) if np.any(glossy) else None
         rays = 0
@@ -297,11 +299,11 @@ class DirectLighting:
         other direction is unoccluded by construction."""
         in_cone = np.zeros(w.shape[:2], dtype=bool)
         for active, axis, cos_alpha in cones:
-            in_cone |= active[m, None] & (np.einsum("kc,ksc->ks", axis[m], w) >= cos_alpha[m, None])
+            in_cone |= active[m, None] & ((w @ axis[m])[..., 0] >= cos_alpha[m, None])
         occluded = np.zeros(w.shape[:2], dtype=bool)
-        kk, ss = np.nonzero(in_cone & facing)
-        occluded[kk, ss] = self.caster.occluded(x[m[kk]], w[kk, ss])
-        return occluded, len(kk)
+        at = np.flatnonzero(in_cone & facing)
+        occluded.reshape(-1)[at] = self.caster.occluded(x[m[at // w.shape[1]]], w.reshape(-1, 3)[at])
+        return occluded, len(at)
 
     def _coarse(self, x, n, m, j, cones, group: int, k: int):
         """`(verdict (K,), outline (K,), rays)` of the pairs `(m, j)` from `k^2` rays per (pixel, env
@@ -320,7 +322,8 @@ class DirectLighting:
         per_point = _rays_per_point(k, group)
         strata = _diagonal_order(k)[((m % group)[:, None] * per_point + np.arange(per_point)) % (k * k)]
         w = self._cell_points(k)[j[:, None], strata]  # (K, per_point, 3)
-        occluded, rays = self._trace(x, m, w, cones, np.einsum("kc,ksc->ks", n[m], w) > 0)
+        facing = (w @ n[m, :, None].astype(np.float32))[..., 0] > 0
+        occluded, rays = self._trace(x, m, w, cones, facing)
         key = (m // group) * N + j
         size = int(key.max()) + 1
         shut = np.bincount(key, occluded.sum(axis=1), minlength=size)
