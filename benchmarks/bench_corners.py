@@ -29,7 +29,10 @@ turned by 1 degree, the lamp moved by 5 cm, the floor's texture unknown (flat at
 every surface's texture and the clutter unknown; and the corner file alone (walls, camera, lamp:
 every surface at albedo 0.5, no clutter, as `hiddenjax corner --refine` renders it), without and
 with the albedo read off a frame of the empty corner (`DifferentialRenderer.calibrated`, what the
-command does). It writes `mismatch.json`: the network's and the refined mean and median d per fault.
+command does); and a fault followed by the camera's aim read off a frame of the empty corner
+(`fit_aim`, what the command does first: "camera 1 deg, aim read", "walls 1, aim read", "walls 2,
+aim read"; the same faults drawn as without). It writes `mismatch.json`: the network's and the
+refined mean and median d per fault.
 
 Differential rendering (issue 6, thesis 3.2.1 reports ~15x): the exact one-bounce difference image
 by sampling the object and its shadow (`DifferentialRenderer.render(negative=True)`) against the
@@ -302,6 +305,10 @@ def _faulty_renderer(scene, fault: str, rng):
         if fault == "corner file + background":
             r = r.calibrated(hc.render_full(scene, with_object=False, samples=64, seed=int(rng.integers(1 << 30))))
         return r
+    if fault.endswith(", aim read"):  # the fault, then the camera's aim read off a frame of the empty corner
+        model = _faulty(scene, fault.removesuffix(", aim read"), rng)  # drawn first: the same faults as without
+        background = hc.render_full(scene, with_object=False, samples=64, seed=int(rng.integers(1 << 30)))
+        return hc.DifferentialRenderer(hc.fit_aim(model, background).scene)
     return hc.DifferentialRenderer(_faulty(scene, fault, rng))
 
 
@@ -345,7 +352,8 @@ def _corner_file(scene, params: dict):
 
 
 FAULTS = ("none", "walls 1", "walls 2", "camera 1 deg", "lamp 5 cm", "floor texture", "textures and clutter",
-          "corner file", "corner file + background")
+          "corner file", "corner file + background", "camera 1 deg, aim read", "walls 1, aim read",
+          "walls 2, aim read")
 
 
 def model_mismatch(count: int, seed: int, aim: int = 0, faults=FAULTS) -> dict:
@@ -361,7 +369,7 @@ def model_mismatch(count: int, seed: int, aim: int = 0, faults=FAULTS) -> dict:
         loc = hc.localize(model, data.images)
         network_d = hc.localization_errors(loc.position, data.positions)["d"] * 100
         for fault in faults:
-            rng = np.random.default_rng([seed, FAULTS.index(fault)])
+            rng = np.random.default_rng([seed, FAULTS.index(fault.removesuffix(", aim read"))])  # the same turns
             refined = []
             for i, image in enumerate(data.images):
                 scene = hc.random_corner_scene(kind, seed * 1_000_003 + i, lamp=hc.FIXED_LAMP)

@@ -205,17 +205,28 @@ def test_corner_command_reads_a_video_and_mirrored_frames(walk, tmp_path):
     assert np.mean(np.linalg.norm(est - path, axis=1)) < 0.1
 
 
-def test_corner_command_refines_with_a_measured_corner(walk, tmp_path):
+@pytest.mark.parametrize("turn", [0.0, 1.0])
+def test_corner_command_refines_with_a_measured_corner(walk, tmp_path, turn):
+    """The corner file's camera exact, or turned by a degree: its aim is read off the background first."""
     d, path, scene = walk
-    p, o, t = scene.params, scene.params["camera_origin"], scene.params["camera_target"]
-    toml = (f'[corner]\nclass = "L"\nlamp = {list(hc.FIXED_LAMP)}\n[corner.camera]\norigin = {list(o)}\n'
-            f'target = {list(t)}\nfov = {p["fov"]}\n[corner.geometry]\n'
+    p, o, t = scene.params, np.asarray(scene.params["camera_origin"]), np.asarray(scene.params["camera_target"])
+    a = np.radians(turn)
+    t = o + np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) @ (t - o)
+    toml = (f'[corner]\nclass = "L"\nlamp = {list(hc.FIXED_LAMP)}\n[corner.camera]\norigin = {o.tolist()}\n'
+            f'target = {t.tolist()}\nfov = {p["fov"]}\n[corner.geometry]\n'
             + "".join(f"{k} = {p[k]}\n" for k in hc.GEOMETRY_KEYS["L"]))
     (tmp_path / "corner.toml").write_text(toml)
     status, _, err = _run(["corner", str(d / "empty.exr"), str(d / "frames" / "f0.exr"), "-o", str(tmp_path / "r"),
                            "--corner", str(tmp_path / "corner.toml"), "--linear", "--refine", "--quiet"])
     assert status == 0, err
     result = json.loads((tmp_path / "r" / "track.json").read_text())
+    # where the file's camera sees the point the true camera sees at the frame's centre
+    centre = np.array([SIZE / 2, SIZE / 2])
+    point = o + 0.5 * np.asarray(scene.camera.ray_directions(centre))
+    filed = hj.Camera.look_at(o, t, [0, 1, 0], p["fov"], SIZE, SIZE)
+    moved = np.asarray(filed.project(point)[0]) - centre
+    # measured: exact, (0, 0) (left as it is); turned, (-0.07, -2.03) against (0.00, -1.62) at the centre
+    assert np.all(np.abs(np.asarray(result["aim_fit"]["shift"]) + moved) < 0.6)
     (refined,), (estimate,) = result["refined"], result["estimates"]
     assert np.isfinite([refined["x"], refined["z"], refined["loss"], refined["improvement"], refined["noise"]]).all()
     assert refined["network"] == pytest.approx([estimate["x"], estimate["z"]])

@@ -39,14 +39,17 @@ def add_parsers(sub) -> None:
                    help="the square of the frames the network sees (default: the central square)")
     p.add_argument("--mirror", action="store_true", help="the hidden corridor opens to the right of the frames")
     p.add_argument("--refine", action="store_true", help="refine the estimates against the rendered corner (thesis "
-                                                         "3.5.2; needs the corner file's camera and geometry)")
+                                                         "3.5.2; needs the corner file's camera and geometry); the "
+                                                         "camera's aim (up to 3 pixels), an unknown lamp and the "
+                                                         "albedo are read off the background first")
     p.add_argument("--refine-every", type=int, default=1, metavar="K",
                    help="refine every K-th estimate, each search also started from the previous refined place "
                         "(default 1: every estimate)")
     p.add_argument("--refine-steps", type=int, help=argparse.SUPPRESS)  # the variational refinement's; unused
     p.add_argument("--refine-aim", type=int, default=0, metavar="PX",
-                   help="--refine: fit the camera's aim as an image shift of up to PX pixels at the network's 128 "
-                        "(about 2 per degree; default 0: the corner file's camera is exact)")
+                   help="--refine: also fit the camera's aim with every candidate place, as an image shift of up to "
+                        "PX pixels at the network's 128 (about 2 per degree; default 0: the aim read off the "
+                        "background is kept)")
     p.add_argument("--every", type=int, default=1, help="keep every N-th frame (default 1)")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
     p.add_argument("--linear", action="store_true", help="the frames' values are linear (default: decode sRGB)")
@@ -114,14 +117,27 @@ def corner(args) -> dict:
     estimates = [dict(frame=int(f), x=float(p[0]), z=float(p[1]), theta=float(q[0]), rho=float(q[1]),
                       cov=c.tolist(), sigma=np.sqrt(np.maximum(np.linalg.eigvalsh(c), 0)).tolist())
                  for f, p, q, c in zip(frame_index, result.position, result.polar, result.cov)]
-    refined = lamp_fit = None
+    refined = lamp_fit = aim_fit = None
     if args.refine:
-        if lamp_box is not None:  # the lamp, unknown, from the frame of the empty corner (before its albedo)
-            found = _corners.fit_lamp(renderer.scene, back, lamp_box)
-            renderer = _corners.DifferentialRenderer(dataclasses.replace(renderer.scene, lamp=found.lamp))
+        # From the frame of the empty corner, before the albedo is read off it: the lamp where it is
+        # unknown, the camera's aim (read with the lamp: its shadows have edges too), and the lamp
+        # again where the camera turned.
+        scene, seconds_before = renderer.scene, time.perf_counter()
+        if lamp_box is not None:
+            found = _corners.fit_lamp(scene, back, lamp_box)
+            scene = dataclasses.replace(scene, lamp=found.lamp)
+        aimed = _corners.fit_aim(scene, back)
+        scene = aimed.scene
+        aim_fit = dict(shift=aimed.shift.tolist(), loss=aimed.loss, loss_unmoved=aimed.loss_unmoved,
+                       seconds=aimed.seconds)
+        if lamp_box is not None:
+            if np.any(aimed.shift):
+                found = _corners.fit_lamp(scene, back, lamp_box)
+                scene = dataclasses.replace(scene, lamp=found.lamp)
+            lamp_fit = dict(lamp=found.lamp.tolist(), loss=found.loss,
+                            seconds=time.perf_counter() - seconds_before - aimed.seconds)
             lamp_box = None
-            lamp_fit = dict(lamp=found.lamp.tolist(), loss=found.loss, seconds=found.seconds)
-        renderer = renderer.calibrated(back)  # the surfaces' albedo, which the corner file does not give
+        renderer = _corners.DifferentialRenderer(scene).calibrated(back)  # the albedo the corner file does not give
         means, _ = _corners.window_means(differences, args.window)
         refined, previous = [], []
         picked = range(0, len(means), args.refine_every)
@@ -140,7 +156,7 @@ def corner(args) -> dict:
     results = dict(kind=kind, setting=setting, network=info["file"], sha256=info["sha256"], frames=len(frames),
                    frame_shape=list(shape), crop=list(_corners.square_crop(*shape, crop)), mirror=mirror,
                    background=str(background), window=args.window, estimates=estimates, refined=refined,
-                   lamp_fit=lamp_fit,
+                   lamp_fit=lamp_fit, aim_fit=aim_fit,
                    locate_seconds=seconds, frames_per_second=len(estimates) / max(seconds, 1e-9),
                    fps=fps, units=dict(x="m", z="m", theta="rad", rho="m", cov="m^2"))
     out.mkdir(exist_ok=True)

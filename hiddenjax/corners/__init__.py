@@ -1,7 +1,7 @@
 """Hidden objects around corners (thesis ch. 3): randomized scenes, differential rendering, polar labels,
 the localization CNN and its training, Gaussian read-out, the
 refinement against the renderer (a search that keeps the network's estimate unless the data say
-otherwise, and the variational one), the lamp read off a frame of the empty corner, and saliency."""
+otherwise, and the variational one), the lamp and the camera's aim read off a frame of the empty corner, and saliency."""
 
 from ._scenes import EMISSIONS as EMISSIONS
 from ._scenes import RHO_MAX as RHO_MAX
@@ -65,3 +65,5 @@ from ._search import CornerRefinement as CornerRefinement
 from ._search import refine_corner as refine_corner
 from ._lamp import LampFit as LampFit
 from ._lamp import fit_lamp as fit_lamp
+from ._aim import AimFit as AimFit
+from ._aim import fit_aim as fit_aim
