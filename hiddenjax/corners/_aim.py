@@ -2,7 +2,7 @@
 
 A corner file's camera turned by a degree moves the whole rendered image by about two pixels at
 128 pixels across 60 degrees, and the refinement, which matches rendered differential frames to
-the measured ones, then makes most estimates worse (docs/experiments/around-the-corner.md). The
+the measured ones, then makes the estimates worse on average (docs/experiments/around-the-corner.md). The
 frame of the empty corner, which every differential frame is taken against, shows where the walls'
 and the floor's edges fall in the image. The model's empty frame `r` (`render_full(with_object=
 False)`) is moved by every whole-pixel shift `d = (dy, dx)` within `+-aim`, and the shift kept is
@@ -24,7 +24,7 @@ more than the turn corrects (a right camera turned by the 0.01-0.07 pixels its p
 the loss of its empty frame against the background 30-100% higher than unturned, on four
 corners at 64 samples/px). And where the model's albedos are a corner file's uniform ones, the
 textures the model lacks dominate the loss: on a corner with strong textures a right camera read
-a one-pixel shift that lowered the loss by 0.1%, while cameras turned by one degree lowered it
+a one-pixel shift that lowered the loss by 2.4%, while cameras turned by one degree lowered it
 by 15-58% (four corners).
 """
 
@@ -43,10 +43,11 @@ from ._search import _shifted_blocks
 
 
 class AimFit(NamedTuple):
-    """The outcome of `fit_aim`: `scene` with its camera's principal point moved by `shift`; `shift
-    (2,)` `(dy, dx)` pixels (rows down, columns right) by which the model's image moves to match the
-    background; `loss` the scale-free loss at the best whole-pixel shift and `loss_unmoved` at none;
-    `seconds` the wall time."""
+    """The outcome of `fit_aim`: `scene` with its camera turned so that its image moves by `shift`;
+    `shift (2,)` `(dy, dx)` pixels (rows down, columns right) by which the model's image moves to match the
+    background (`(0, 0)` where the camera was left as it is); `loss` the scale-free loss at the best
+    whole-pixel shift of the last read (where the camera was left as it is, a shift not applied),
+    `loss_unmoved` at none in the first; `seconds` the wall time."""
 
     scene: CornerScene
     shift: np.ndarray
