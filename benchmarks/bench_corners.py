@@ -31,7 +31,9 @@ every surface at albedo 0.5, no clutter, as `hiddenjax corner --refine` renders 
 with the albedo read off a frame of the empty corner (`DifferentialRenderer.calibrated`, what the
 command does); and a fault followed by the camera's aim read off a frame of the empty corner
 (`fit_aim`, what the command does first: "camera 1 deg, aim read", "walls 1, aim read", "walls 2,
-aim read"; the same faults drawn as without). It writes `mismatch.json`: the network's and the
+aim read", "corner file + background, aim read"; the same faults drawn as without); and the corner
+file with its camera turned by 1 degree, with and without the aim read ("corner file + background +
+camera 1 deg[, aim read]": the whole command). It writes `mismatch.json`: the network's and the
 refined mean and median d per fault.
 
 Differential rendering (issue 6, thesis 3.2.1 reports ~15x): the exact one-bounce difference image
@@ -300,16 +302,22 @@ def refined_rows(kind: str, setting: str, data, loc, seed: int, aim: int = 0, la
 
 def _faulty_renderer(scene, fault: str, rng):
     """The renderer of `scene`'s model with one fault (see the module docstring); the object unknown."""
-    if fault.startswith("corner file"):  # what a corner file describes: walls, camera, lamp
-        r = hc.DifferentialRenderer(_corner_file(scene, scene.params))
-        if fault == "corner file + background":
-            r = r.calibrated(hc.render_full(scene, with_object=False, samples=64, seed=int(rng.integers(1 << 30))))
-        return r
-    if fault.endswith(", aim read"):  # the fault, then the camera's aim read off a frame of the empty corner
-        model = _faulty(scene, fault.removesuffix(", aim read"), rng)  # drawn first: the same faults as without
-        background = hc.render_full(scene, with_object=False, samples=64, seed=int(rng.integers(1 << 30)))
-        return hc.DifferentialRenderer(hc.fit_aim(model, background).scene)
-    return hc.DifferentialRenderer(_faulty(scene, fault, rng))
+    base = fault.removesuffix(", aim read")
+    if base.startswith("corner file"):  # what a corner file describes: walls, camera, lamp
+        model = _corner_file(scene, scene.params)
+        if base.endswith("camera 1 deg"):  # its camera turned (drawn first: the same turns with the aim read)
+            model = dataclasses.replace(model, camera=_faulty(scene, "camera 1 deg", rng).camera)
+        background = None
+        if "+ background" in base:
+            background = hc.render_full(scene, with_object=False, samples=64, seed=int(rng.integers(1 << 30)))
+    else:
+        model = _faulty(scene, base, rng)  # drawn first: the same faults with the aim read as without
+        background = hc.render_full(scene, with_object=False, samples=64, seed=int(rng.integers(1 << 30))) \
+            if base != fault else None
+    if base != fault:  # the camera's aim read off a frame of the empty corner, as `corner --refine` does first
+        model = hc.fit_aim(model, background).scene
+    r = hc.DifferentialRenderer(model)
+    return r.calibrated(background) if "+ background" in base else r
 
 
 def _faulty(scene, fault: str, rng):
@@ -353,7 +361,8 @@ def _corner_file(scene, params: dict):
 
 FAULTS = ("none", "walls 1", "walls 2", "camera 1 deg", "lamp 5 cm", "floor texture", "textures and clutter",
           "corner file", "corner file + background", "camera 1 deg, aim read", "walls 1, aim read",
-          "walls 2, aim read")
+          "walls 2, aim read", "corner file + background, aim read", "corner file + background + camera 1 deg",
+          "corner file + background + camera 1 deg, aim read")
 
 
 def model_mismatch(count: int, seed: int, aim: int = 0, faults=FAULTS) -> dict:
