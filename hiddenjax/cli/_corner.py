@@ -122,10 +122,10 @@ def corner(args) -> dict:
         # From the frame of the empty corner, before the albedo is read off it: the lamp where it is
         # unknown, the camera's aim (read with the lamp: its shadows have edges too), and the lamp
         # again where the camera turned.
-        scene, seconds_before = renderer.scene, time.perf_counter()
+        scene = renderer.scene
         if lamp_box is not None:
             found = _corners.fit_lamp(scene, back, lamp_box)
-            scene = dataclasses.replace(scene, lamp=found.lamp)
+            scene, lamp_seconds = dataclasses.replace(scene, lamp=found.lamp), found.seconds
         aimed = _corners.fit_aim(scene, back)
         scene = aimed.scene
         aim_fit = dict(shift=aimed.shift.tolist(), loss=aimed.loss, loss_unmoved=aimed.loss_unmoved,
@@ -133,9 +133,8 @@ def corner(args) -> dict:
         if lamp_box is not None:
             if np.any(aimed.shift):
                 found = _corners.fit_lamp(scene, back, lamp_box)
-                scene = dataclasses.replace(scene, lamp=found.lamp)
-            lamp_fit = dict(lamp=found.lamp.tolist(), loss=found.loss,
-                            seconds=time.perf_counter() - seconds_before - aimed.seconds)
+                scene, lamp_seconds = dataclasses.replace(scene, lamp=found.lamp), lamp_seconds + found.seconds
+            lamp_fit = dict(lamp=found.lamp.tolist(), loss=found.loss, seconds=lamp_seconds)
             lamp_box = None
         renderer = _corners.DifferentialRenderer(scene).calibrated(back)  # the albedo the corner file does not give
         means, _ = _corners.window_means(differences, args.window)

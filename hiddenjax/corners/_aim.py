@@ -36,6 +36,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ._lamp import checked_background
 from ._refine import _blocks
 from ._render import render_full
 from ._scenes import CornerScene
@@ -74,13 +75,8 @@ def fit_aim(scene: CornerScene, background, aim: int = 3, *, samples: int = 16, 
     **Returns:** an `AimFit`.
     """
     t0 = time.perf_counter()
-    background = np.asarray(background, np.float64)
-    H, W = shape = (scene.camera.height, scene.camera.width)
-    if background.shape != shape:
-        raise ValueError(f"the background frame is {background.shape}, the corner's camera {shape}")
-    if not np.all(np.isfinite(background)) or not np.any(background > 0):
-        raise ValueError("the background frame must be finite and brighter than zero somewhere: a linear frame of "
-                         "the lit, empty corner")
+    background = checked_background(scene, background)
+    H, W = shape = background.shape
     if not (isinstance(aim, (int, np.integer)) and 1 <= aim <= min(shape) // 4):
         raise ValueError(f"aim must be a whole number of pixels in [1, {min(shape) // 4}], got {aim!r}")
     if not (isinstance(block, (int, np.integer)) and 1 <= block <= min(shape) // 8) or not samples >= 1 or \
@@ -93,14 +89,17 @@ def fit_aim(scene: CornerScene, background, aim: int = 3, *, samples: int = 16, 
     inner[edge : h - edge, edge : w - edge] = True
     b = _blocks(background, block).ravel()[inner.ravel()]
     bb = float(b @ b)
+    dark = ValueError("the background frame, or the model's, is dark inside the border: a linear frame of the lit, "
+                      "empty corner, and a model whose camera sees it")
+    if not bb > 0:
+        raise dark
     shift, first = np.zeros(2), None
     for _ in range(int(passes)):
         rendered = render_full(scene, with_object=False, samples=int(samples), seed=seed)
         r = _shifted_blocks(rendered, block, aim)[:, inner.ravel()]  # (shifts, blocks)
         rr = np.sum(r * r, axis=1)
-        if not bb > 0 or not np.all(rr > 0):
-            raise ValueError("the background frame, or the model's, is dark inside the border: a linear frame of the "
-                             "lit, empty corner, and a model whose camera sees it")
+        if not np.all(rr > 0):
+            raise dark
         values = (1.0 - (r @ b) ** 2 / (rr * bb)).reshape(2 * aim + 1, 2 * aim + 1)
         iy, ix = np.unravel_index(int(np.argmin(values)), values.shape)
         if first is None:

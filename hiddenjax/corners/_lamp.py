@@ -53,6 +53,19 @@ class LampFit(NamedTuple):
     seconds: float
 
 
+def checked_background(scene: CornerScene, background) -> np.ndarray:
+    """`background` as float64 `(H, W)`, refused unless it has the scene's camera size, is finite and is
+    brighter than zero somewhere (a linear frame of the lit, empty corner)."""
+    background = np.asarray(background, np.float64)
+    shape = (scene.camera.height, scene.camera.width)
+    if background.shape != shape:
+        raise ValueError(f"the background frame is {background.shape}, the corner's camera {shape}")
+    if not np.all(np.isfinite(background)) or not np.any(background > 0):
+        raise ValueError("the background frame must be finite and brighter than zero somewhere: a linear frame of "
+                         "the lit, empty corner")
+    return background
+
+
 def fit_lamp(scene: CornerScene, background, box=LAMP_BOX, *, surface_scales: bool = True, samples: int = 4,
              block: int = 4, lattice: int = 5, searches: int = 3, resolution: float = 0.002, seed: int = 0) -> LampFit:
     """The lamp's position that makes `scene`'s empty frame match `background (H, W)` (module docstring).
@@ -71,13 +84,8 @@ def fit_lamp(scene: CornerScene, background, box=LAMP_BOX, *, surface_scales: bo
     **Returns:** a `LampFit`.
     """
     t0 = time.perf_counter()
-    background = np.asarray(background, np.float64)
-    shape = (scene.camera.height, scene.camera.width)
-    if background.shape != shape:
-        raise ValueError(f"the background frame is {background.shape}, the corner's camera {shape}")
-    if not np.all(np.isfinite(background)) or not np.any(background > 0):
-        raise ValueError("the background frame must be finite and brighter than zero somewhere: a linear frame of "
-                         "the lit, empty corner")
+    background = checked_background(scene, background)
+    shape = background.shape
     low, high = (np.asarray(b, np.float64) for b in box)
     if low.shape != (3,) or high.shape != (3,) or not np.all(np.isfinite(low) & np.isfinite(high) & (low <= high)):
         raise ValueError(f"box must be (low (3,), high (3,)) finite metres with low <= high, got {box!r}")
