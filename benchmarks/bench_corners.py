@@ -33,7 +33,10 @@ command does); and a fault followed by the camera's aim read off a frame of the 
 (`fit_aim`, what the command does first: "camera 1 deg, aim read", "walls 1, aim read", "walls 2,
 aim read", "corner file + background, aim read"; the same faults drawn as without); and the corner
 file with its camera turned by 1 degree, with and without the aim read ("corner file + background +
-camera 1 deg[, aim read]": the whole command). It writes `mismatch.json`: the network's and the
+camera 1 deg[, aim read]"); and a fault followed by the walls' dimensions and then the aim read off
+the empty corner (`fit_walls`, what the command does: ", walls and aim read"), the whole command
+where the fault starts with "corner file" (with its walls measured 2 cm off: "corner file +
+background + walls 2"). It writes `mismatch.json`: the network's and the
 refined mean and median d per fault.
 
 Differential rendering (issue 6, thesis 3.2.1 reports ~15x): the exact one-bounce difference image
@@ -302,9 +305,12 @@ def refined_rows(kind: str, setting: str, data, loc, seed: int, aim: int = 0, la
 
 def _faulty_renderer(scene, fault: str, rng):
     """The renderer of `scene`'s model with one fault (see the module docstring); the object unknown."""
-    base = fault.removesuffix(", aim read")
+    base = _base_fault(fault)
     if base.startswith("corner file"):  # what a corner file describes: walls, camera, lamp
         model = _corner_file(scene, scene.params)
+        if base.endswith("walls 2"):  # its walls measured 2 cm off (drawn first: the same walls with the reads)
+            model = hc.with_walls(model, {k: v for k, v in _faulty(scene, "walls 2", rng).params.items()
+                                          if k in hc.WALL_KEYS[scene.kind]})
         if base.endswith("camera 1 deg"):  # its camera turned (drawn first: the same turns with the aim read)
             model = dataclasses.replace(model, camera=_faulty(scene, "camera 1 deg", rng).camera)
         background = None
@@ -314,7 +320,9 @@ def _faulty_renderer(scene, fault: str, rng):
         model = _faulty(scene, base, rng)  # drawn first: the same faults with the aim read as without
         background = hc.render_full(scene, with_object=False, samples=64, seed=int(rng.integers(1 << 30))) \
             if base != fault else None
-    if base != fault:  # the camera's aim read off a frame of the empty corner, as `corner --refine` does first
+    if fault.endswith(", walls and aim read"):  # the walls' dimensions, then the aim, as `corner --refine` does
+        model = hc.fit_walls(model, background).scene
+    if base != fault:  # the camera's aim read off a frame of the empty corner, as the command does
         model = hc.fit_aim(model, background).scene
     r = hc.DifferentialRenderer(model)
     return r.calibrated(background) if "+ background" in base else r
@@ -325,11 +333,10 @@ def _faulty(scene, fault: str, rng):
     model = model_scene(scene, "fixed-lamp")
     if fault.startswith("walls"):
         shift = float(fault.split()[1]) / 100
-        p = dict(scene.params)
+        p = {}
         for k in ("width_visible", "width_hidden", "length_visible", "length_hidden", "wall_height"):
-            p[k] = p[k] + shift * rng.choice([-1.0, 1.0])
-        walls = _corner_file(scene, p).meshes
-        return dataclasses.replace(model, meshes=tuple(walls) + model.meshes[len(walls):])
+            p[k] = scene.params[k] + shift * rng.choice([-1.0, 1.0])
+        return hc.with_walls(model, p)
     if fault == "camera 1 deg":
         c = scene.camera
         origin, f = np.asarray(c.origin), np.asarray(scene.params["camera_target"]) - np.asarray(c.origin)
@@ -362,7 +369,15 @@ def _corner_file(scene, params: dict):
 FAULTS = ("none", "walls 1", "walls 2", "camera 1 deg", "lamp 5 cm", "floor texture", "textures and clutter",
           "corner file", "corner file + background", "camera 1 deg, aim read", "walls 1, aim read",
           "walls 2, aim read", "corner file + background, aim read", "corner file + background + camera 1 deg",
-          "corner file + background + camera 1 deg, aim read")
+          "corner file + background + camera 1 deg, aim read", "none, walls and aim read",
+          "walls 1, walls and aim read", "walls 2, walls and aim read", "corner file + background, walls and aim read",
+          "corner file + background + camera 1 deg, walls and aim read", "corner file + background + walls 2",
+          "corner file + background + walls 2, walls and aim read")
+
+
+def _base_fault(fault: str) -> str:
+    """The fault without the reads that follow it (", aim read", ", walls and aim read")."""
+    return fault.removesuffix(", walls and aim read").removesuffix(", aim read")
 
 
 def model_mismatch(count: int, seed: int, aim: int = 0, faults=FAULTS) -> dict:
@@ -378,7 +393,7 @@ def model_mismatch(count: int, seed: int, aim: int = 0, faults=FAULTS) -> dict:
         loc = hc.localize(model, data.images)
         network_d = hc.localization_errors(loc.position, data.positions)["d"] * 100
         for fault in faults:
-            rng = np.random.default_rng([seed, FAULTS.index(fault.removesuffix(", aim read"))])  # the same turns
+            rng = np.random.default_rng([seed, FAULTS.index(_base_fault(fault))])  # the same faults with reads
             refined = []
             for i, image in enumerate(data.images):
                 scene = hc.random_corner_scene(kind, seed * 1_000_003 + i, lamp=hc.FIXED_LAMP)

@@ -205,19 +205,22 @@ def test_corner_command_reads_a_video_and_mirrored_frames(walk, tmp_path):
     assert np.mean(np.linalg.norm(est - path, axis=1)) < 0.1
 
 
-@pytest.mark.parametrize("turn", [0.0, 1.0])
-def test_corner_command_refines_with_a_measured_corner(walk, tmp_path, turn):
-    """The corner file's camera exact, or turned by a degree: its aim is read off the background first."""
+@pytest.mark.parametrize("turn, taller, keep", [(0.0, 0.0, False), (1.0, 0.0, False), (0.0, 0.02, False),
+                                                (1.0, 0.0, True)])
+def test_corner_command_refines_with_a_measured_corner(walk, tmp_path, turn, taller, keep):
+    """The corner file's camera exact, turned by a degree, or its walls 2 cm too tall: the walls and the aim
+    are read off the background first (`--keep-walls`: the walls as the file gives them)."""
     d, path, scene = walk
     p, o, t = scene.params, np.asarray(scene.params["camera_origin"]), np.asarray(scene.params["camera_target"])
     a = np.radians(turn)
     t = o + np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) @ (t - o)
     toml = (f'[corner]\nclass = "L"\nlamp = {list(hc.FIXED_LAMP)}\n[corner.camera]\norigin = {o.tolist()}\n'
             f'target = {t.tolist()}\nfov = {p["fov"]}\n[corner.geometry]\n'
-            + "".join(f"{k} = {p[k]}\n" for k in hc.GEOMETRY_KEYS["L"]))
+            + "".join(f"{k} = {p[k] + (taller if k == 'wall_height' else 0.0)}\n" for k in hc.GEOMETRY_KEYS["L"]))
     (tmp_path / "corner.toml").write_text(toml)
     status, _, err = _run(["corner", str(d / "empty.exr"), str(d / "frames" / "f0.exr"), "-o", str(tmp_path / "r"),
-                           "--corner", str(tmp_path / "corner.toml"), "--linear", "--refine", "--quiet"])
+                           "--corner", str(tmp_path / "corner.toml"), "--linear", "--refine", "--quiet"]
+                          + ["--keep-walls"] * keep)
     assert status == 0, err
     result = json.loads((tmp_path / "r" / "track.json").read_text())
     # where the file's camera sees the point the true camera sees at the frame's centre
@@ -227,6 +230,13 @@ def test_corner_command_refines_with_a_measured_corner(walk, tmp_path, turn):
     moved = np.asarray(filed.project(point)[0]) - centre
     # measured: exact, (0, 0) (left as it is); turned, (-0.07, -2.03) against (0.00, -1.62) at the centre
     assert np.all(np.abs(np.asarray(result["aim_fit"]["shift"]) + moved) < 0.6)
+    walls = result["walls_fit"]
+    if keep:
+        assert walls is None
+    else:  # measured: the height 2 cm too tall back exactly, the rest left at the file's values
+        assert walls["moved"] == (taller > 0)  # the file's walls kept where they are right
+        assert abs(walls["geometry"]["wall_height"] - p["wall_height"]) < 0.005
+        assert walls["loss"] <= walls["loss_unmoved"] and walls["seconds"] > 0
     (refined,), (estimate,) = result["refined"], result["estimates"]
     assert np.isfinite([refined["x"], refined["z"], refined["loss"], refined["improvement"], refined["noise"]]).all()
     assert refined["network"] == pytest.approx([estimate["x"], estimate["z"]])

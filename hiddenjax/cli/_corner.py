@@ -40,8 +40,12 @@ def add_parsers(sub) -> None:
     p.add_argument("--mirror", action="store_true", help="the hidden corridor opens to the right of the frames")
     p.add_argument("--refine", action="store_true", help="refine the estimates against the rendered corner (thesis "
                                                          "3.5.2; needs the corner file's camera and geometry); the "
-                                                         "camera's aim (up to 3 pixels), an unknown lamp and the "
-                                                         "albedo are read off the background first")
+                                                         "camera's aim (up to 3 pixels), the walls' dimensions "
+                                                         "(within 5 cm), an unknown lamp and the albedo are read "
+                                                         "off the background first")
+    p.add_argument("--keep-walls", action="store_true",
+                   help="--refine: keep the corner file's wall dimensions as they are (default: read them off the "
+                        "background first, within 5 cm)")
     p.add_argument("--refine-every", type=int, default=1, metavar="K",
                    help="refine every K-th estimate, each search also started from the previous refined place "
                         "(default 1: every estimate)")
@@ -117,21 +121,27 @@ def corner(args) -> dict:
     estimates = [dict(frame=int(f), x=float(p[0]), z=float(p[1]), theta=float(q[0]), rho=float(q[1]),
                       cov=c.tolist(), sigma=np.sqrt(np.maximum(np.linalg.eigvalsh(c), 0)).tolist())
                  for f, p, q, c in zip(frame_index, result.position, result.polar, result.cov)]
-    refined = lamp_fit = aim_fit = None
+    refined = lamp_fit = aim_fit = walls_fit = None
     if args.refine:
         # From the frame of the empty corner, before the albedo is read off it: the lamp where it is
-        # unknown, the camera's aim (read with the lamp: its shadows have edges too), and the lamp
-        # again where the camera turned.
+        # unknown, the walls' dimensions (each candidate at its best whole-pixel shift: the aim unknown),
+        # the camera's aim (read with the lamp: its shadows have edges too), and the lamp again where
+        # the walls moved or the camera turned.
         scene = renderer.scene
         if lamp_box is not None:
             found = _corners.fit_lamp(scene, back, lamp_box)
             scene, lamp_seconds = dataclasses.replace(scene, lamp=found.lamp), found.seconds
+        if not args.keep_walls:
+            walled = _corners.fit_walls(scene, back)
+            walls_fit = dict(geometry=walled.geometry, loss=walled.loss, loss_unmoved=walled.loss_unmoved,
+                             moved=walled.scene is not scene, seconds=walled.seconds)
+            scene = walled.scene
         aimed = _corners.fit_aim(scene, back)
         scene = aimed.scene
         aim_fit = dict(shift=aimed.shift.tolist(), loss=aimed.loss, loss_unmoved=aimed.loss_unmoved,
                        seconds=aimed.seconds)
         if lamp_box is not None:
-            if np.any(aimed.shift):
+            if np.any(aimed.shift) or (walls_fit and walls_fit["moved"]):
                 found = _corners.fit_lamp(scene, back, lamp_box)
                 scene, lamp_seconds = dataclasses.replace(scene, lamp=found.lamp), lamp_seconds + found.seconds
             lamp_fit = dict(lamp=found.lamp.tolist(), loss=found.loss, seconds=lamp_seconds)
@@ -155,7 +165,7 @@ def corner(args) -> dict:
     results = dict(kind=kind, setting=setting, network=info["file"], sha256=info["sha256"], frames=len(frames),
                    frame_shape=list(shape), crop=list(_corners.square_crop(*shape, crop)), mirror=mirror,
                    background=str(background), window=args.window, estimates=estimates, refined=refined,
-                   lamp_fit=lamp_fit, aim_fit=aim_fit,
+                   lamp_fit=lamp_fit, aim_fit=aim_fit, walls_fit=walls_fit,
                    locate_seconds=seconds, frames_per_second=len(estimates) / max(seconds, 1e-9),
                    fps=fps, units=dict(x="m", z="m", theta="rad", rho="m", cov="m^2"))
     out.mkdir(exist_ok=True)

@@ -1,7 +1,7 @@
 """Hidden objects around corners (thesis ch. 3): randomized scenes, differential rendering, polar labels,
 the localization CNN and its training, Gaussian read-out, the
 refinement against the renderer (a search that keeps the network's estimate unless the data say
-otherwise, and the variational one), the lamp and the camera's aim read off a frame of the empty corner, and saliency."""
+otherwise, and the variational one), the lamp, the camera's aim and the walls' dimensions read off a frame of the empty corner, and saliency."""
 
 from ._scenes import EMISSIONS as EMISSIONS
 from ._scenes import RHO_MAX as RHO_MAX
@@ -67,3 +67,7 @@ from ._lamp import LampFit as LampFit
 from ._lamp import fit_lamp as fit_lamp
 from ._aim import AimFit as AimFit
 from ._aim import fit_aim as fit_aim
+from ._walls import WALL_KEYS as WALL_KEYS
+from ._walls import WallsFit as WallsFit
+from ._walls import fit_walls as fit_walls
+from ._walls import with_walls as with_walls
