@@ -124,7 +124,7 @@ def corner(args) -> dict:
     refined = lamp_fit = aim_fit = walls_fit = None
     if args.refine:
         # From the frame of the empty corner, before the albedo is read off it: the lamp where it is
-        # unknown, the walls' dimensions (each candidate at its best whole-pixel shift: the aim unknown),
+        # unknown, the walls' dimensions (each candidate at its best shift: the aim is not read yet),
         # the camera's aim (read with the lamp: its shadows have edges too), and the lamp again where
         # the walls moved or the camera turned.
         scene = renderer.scene
