@@ -309,8 +309,7 @@ def _faulty_renderer(scene, fault: str, rng):
     if base.startswith("corner file"):  # what a corner file describes: walls, camera, lamp
         model = _corner_file(scene, scene.params)
         if base.endswith("walls 2"):  # its walls measured 2 cm off (drawn first: the same walls with the reads)
-            model = hc.with_walls(model, {k: v for k, v in _faulty(scene, "walls 2", rng).params.items()
-                                          if k in hc.WALL_KEYS[scene.kind]})
+            model = hc.with_walls(model, _moved_walls(scene, 0.02, rng))
         if base.endswith("camera 1 deg"):  # its camera turned (drawn first: the same turns with the aim read)
             model = dataclasses.replace(model, camera=_faulty(scene, "camera 1 deg", rng).camera)
         background = None
@@ -332,11 +331,7 @@ def _faulty(scene, fault: str, rng):
     """The model of `scene` with one fault (see the module docstring); the hidden object is unknown."""
     model = model_scene(scene, "fixed-lamp")
     if fault.startswith("walls"):
-        shift = float(fault.split()[1]) / 100
-        p = {}
-        for k in ("width_visible", "width_hidden", "length_visible", "length_hidden", "wall_height"):
-            p[k] = scene.params[k] + shift * rng.choice([-1.0, 1.0])
-        return hc.with_walls(model, p)
+        return hc.with_walls(model, _moved_walls(scene, float(fault.split()[1]) / 100, rng))
     if fault == "camera 1 deg":
         c = scene.camera
         origin, f = np.asarray(c.origin), np.asarray(scene.params["camera_target"]) - np.asarray(c.origin)
@@ -356,6 +351,12 @@ def _faulty(scene, fault: str, rng):
                                    texture=(flat,) * walls)
     assert fault == "none", fault
     return model
+
+
+def _moved_walls(scene, shift: float, rng) -> dict:
+    """`scene`'s walls' five dimensions each moved by `shift` metres up or down (the "walls" faults)."""
+    return {k: scene.params[k] + shift * rng.choice([-1.0, 1.0])
+            for k in ("width_visible", "width_hidden", "length_visible", "length_hidden", "wall_height")}
 
 
 def _corner_file(scene, params: dict):

@@ -40,7 +40,7 @@ from ._lamp import checked_background
 from ._refine import _blocks
 from ._render import render_full
 from ._scenes import CornerScene
-from ._search import _shifted_blocks
+from ._search import _parabola, _shifted_blocks
 
 
 class AimFit(NamedTuple):
@@ -106,8 +106,8 @@ def fit_aim(scene: CornerScene, background, aim: int = 3, *, samples: int = 16, 
             first = float(values[aim, aim])
             if values[iy, ix] > (1 - min_gain) * first:  # no shift explains the frame clearly better: left as it is
                 break
-        step = np.array([iy - aim + _vertex(values[iy - 1 : iy + 2, ix]),
-                         ix - aim + _vertex(values[iy, ix - 1 : ix + 2])], np.float64)
+        step = np.array([iy - aim + _parabola(values[iy - 1 : iy + 2, ix])[0],
+                         ix - aim + _parabola(values[iy, ix - 1 : ix + 2])[0]], np.float64)
         scene = dataclasses.replace(scene, camera=_turned(scene.camera, step))
         shift = shift + step
     return AimFit(scene, shift, float(values[iy, ix]), first, time.perf_counter() - t0)
@@ -126,12 +126,3 @@ def _turned(camera, shift):
     dtype = camera.rotation.dtype
     return eqx.tree_at(lambda k: (k.rotation, k.translation), camera,
                        (jnp.asarray(rotation, dtype), jnp.asarray(translation, dtype)))
-
-
-def _vertex(v) -> float:
-    """The offset (within +-0.5) of the minimum of the parabola through three equally spaced values
-    centred on the least; 0 at the search's edge (fewer than three values) or where it is flat."""
-    if len(v) < 3:
-        return 0.0
-    curvature = v[0] - 2 * v[1] + v[2]
-    return float(np.clip(0.5 * (v[0] - v[2]) / curvature, -0.5, 0.5)) if curvature > 0 else 0.0

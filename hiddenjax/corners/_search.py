@@ -85,6 +85,19 @@ def _shifted_blocks(image, block: int, aim: int) -> np.ndarray:
     return sums.reshape(len(dy), h * w) / block**2
 
 
+def _parabola(v) -> tuple[float, float]:
+    """`(offset, dip)` of the parabola through three equally spaced values `v` centred on the least: the
+    offset of its minimum (within +-0.5 steps), `0.5 (v0 - v2) / (v0 - 2 v1 + v2)`, and how far it dips
+    below `v1`, `(v0 - v2)^2 / (8 (v0 - 2 v1 + v2))`; both 0 at the search's edge (fewer than three
+    values) or where it is flat."""
+    if len(v) < 3:
+        return 0.0, 0.0
+    curvature = v[0] - 2 * v[1] + v[2]
+    if not curvature > 0:
+        return 0.0, 0.0
+    return float(np.clip(0.5 * (v[0] - v[2]) / curvature, -0.5, 0.5)), float((v[0] - v[2]) ** 2 / (8 * curvature))
+
+
 class _Loss:
     """The paired scale-free loss of a parameter vector `(x, z, radius, height[, lamp (3,)])`,
     the least over the rendered image's shifts within `+-aim` pixels (the camera's aim)."""

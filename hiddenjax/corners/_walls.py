@@ -12,10 +12,11 @@ dimensions `g` (`corner_scene`'s `GEOMETRY_KEYS`; the table and the clutter stay
 on `block`-averaged images, `b` the background, `R_d(g)` the model's empty frame
 (`render_full(with_object=False)`) with the walls `g`, split into one column per surface (the
 floor, each wall: the surface each pixel's centre sees) and moved by the whole-pixel shift `d`
-within `+-aim` (the least over `d` refined below a pixel by a parabola along each axis), and `P` the least-squares projection onto those columns: eq. 3.2 with each
-surface's brightness fitted in closed form (`surface_scales`, as `fit_lamp` does; a corner file's
-uniform albedo 0.5 is wrong from one surface to the next, and with one scale the back wall's
-width went to the search's bound to make up a wall's brightness). The shift is there because a
+within `+-aim` (the least over `d` refined below a pixel by a parabola along each axis), and `P`
+the least-squares projection onto those columns: eq. 3.2 with each surface's brightness fitted
+in closed form (`surface_scales`, as `fit_lamp` does; a corner file's uniform albedo 0.5 is wrong
+from one surface to the next, and with one scale the back wall's width went to the search's bound
+to make up a wall's brightness). The shift is there because a
 camera whose aim is off moves the whole image, which the walls would otherwise take up; read
 first instead, the aim took up the walls (a wall 2 cm too tall read as a shift of 2-3 pixels).
 `fit_aim` reads the aim itself once the walls are placed.
@@ -46,7 +47,7 @@ from ._lamp import checked_background
 from ._refine import _blocks
 from ._render import render_full
 from ._scenes import GEOMETRY_KEYS, CornerScene, _walls
-from ._search import _compass, _shifted_blocks
+from ._search import _compass, _parabola, _shifted_blocks
 
 # The dimensions that place the walls, by class (the table's own keys place the table, not the walls).
 WALL_KEYS = {kind: tuple(k for k in keys if not k.startswith("table")) for kind, keys in GEOMETRY_KEYS.items()}
@@ -56,17 +57,7 @@ def _explained(R: np.ndarray, b: np.ndarray) -> np.ndarray:
     """`(S,)` the squared norm of `b (B,)`'s least-squares projection onto the columns of each `R[s] (B, K)`:
     `b^T R (R^T R)^+ R^T b`, the surfaces' scales fitted in closed form."""
     Rb = np.einsum("sbk,b->sk", R, b)
-    gram = np.einsum("sbk,sbl->skl", R, R)
-    return np.einsum("sk,sk->s", Rb, np.stack([np.linalg.pinv(g, hermitian=True) @ v for g, v in zip(gram, Rb)]))
-
-
-def _dip(v) -> float:
-    """How far the parabola through three equally spaced values, centred on the least, dips below it:
-    `(v0 - v2)^2 / (8 (v0 - 2 v1 + v2))` (0 at the shifts' edge or where it is flat)."""
-    if len(v) < 3:
-        return 0.0
-    curvature = v[0] - 2 * v[1] + v[2]
-    return float(min((v[0] - v[2]) ** 2 / (8 * curvature), 0.5 * curvature)) if curvature > 0 else 0.0
+    return np.einsum("sk,skl,sl->s", Rb, np.linalg.pinv(np.einsum("sbk,sbl->skl", R, R), hermitian=True), Rb)
 
 
 class WallsFit(NamedTuple):
@@ -172,7 +163,8 @@ def fit_walls(scene: CornerScene, background, reach: float = 0.05, *, keys=None,
         R = np.stack([_shifted_blocks(part, block, int(aim))[:, inner.ravel()] for part in parts], -1)  # (S, B, K)
         values = (1.0 - _explained(R, b) / bb).reshape(2 * aim + 1, 2 * aim + 1)
         iy, ix = np.unravel_index(int(np.argmin(values)), values.shape)
-        return float(values[iy, ix] - _dip(values[iy - 1: iy + 2, ix]) - _dip(values[iy, ix - 1: ix + 2]))
+        return float(values[iy, ix] - _parabola(values[iy - 1: iy + 2, ix])[1]
+                     - _parabola(values[iy, ix - 1: ix + 2])[1])
 
     low = np.maximum(start - reach, 0.01)  # no dimension below a centimetre
     high = start + reach
