@@ -59,10 +59,16 @@ class DirectLighting:
         self.omega = grid.solid_angles().reshape(-1)
         radius = grid.angular_radius().reshape(-1)
         self.sin_beta = np.sin(radius) + 1e-9  # the horizon band's half-width
-        beta = radius + 1e-6
-        self.beta_rad = beta
-        self.cos_beta32 = np.cos(beta).astype(np.float32)[None, :]
-        self.sin_beta32 = np.sin(beta).astype(np.float32)[None, :]
+        # the occluders' cone test per grid row and column: a centre is `(sin t sin p, cos t, -sin t cos p)`
+        # and every pixel of a row has one shape (its radius, widened by 1e-6, the row's largest)
+        theta, phi = grid.centers()
+        self.row_beta = (radius + 1e-6).reshape(grid.shape).max(axis=1)
+        self.cos_row_beta32 = np.cos(self.row_beta).astype(np.float32)[None, :]
+        self.sin_row_beta32 = np.sin(self.row_beta).astype(np.float32)[None, :]
+        self.sin_theta32 = np.sin(theta[:, 0]).astype(np.float32)[None, :, None]
+        self.cos_theta32 = np.cos(theta[:, 0]).astype(np.float32)[None, :]
+        self.sin_phi32 = np.sin(phi[0]).astype(np.float32)[None, :]
+        self.cos_phi32 = np.cos(phi[0]).astype(np.float32)[None, :]
         self.centres32 = self.centres.astype(np.float32)
         self._horizons = {}  # a few distinct normals (planar receivers) -> their horizon classes
         self.spheres = [s.bounding_sphere() for s in scene]
@@ -227,22 +233,26 @@ class DirectLighting:
             axis = v / np.maximum(dist, 1e-300)[:, None]
             sin_a = np.where(dist > radius, radius / np.maximum(dist, 1e-300), 1.0)
             cos_a = np.where(dist > radius, np.sqrt(1 - sin_a**2), -1.0)
-            # angle(axis, centre_j) <= alpha + beta_j, with cos(alpha + beta) by angle addition (float32:
-            # the margin 1e-6 and beta's 1e-6 cover its round-off); every pixel where alpha + beta >= pi
-            reach = cos_a.astype(np.float32)[:, None] * self.cos_beta32
-            reach -= sin_a.astype(np.float32)[:, None] * self.sin_beta32
+            # angle(axis, centre_j) <= alpha + beta_j, with cos(alpha + beta) by angle addition per grid row
+            # (float32: the margin 1e-6 and beta's 1e-6 cover its round-off); every pixel where alpha + beta >= pi
+            reach = cos_a.astype(np.float32)[:, None] * self.cos_row_beta32
+            reach -= sin_a.astype(np.float32)[:, None] * self.sin_row_beta32
             reach -= 1e-6
-            wrap = np.nonzero(np.arcsin(sin_a) + self.beta_rad.max() >= np.pi)[0]
+            wrap = np.nonzero(np.arcsin(sin_a) + self.row_beta.max() >= np.pi)[0]
             if len(wrap):
-                reach[wrap] = np.where(self.beta_rad[None, :] + np.arcsin(sin_a[wrap])[:, None] >= np.pi, -2.0,
+                reach[wrap] = np.where(self.row_beta[None, :] + np.arcsin(sin_a[wrap])[:, None] >= np.pi, -2.0,
                                        reach[wrap])
-            a = axis.astype(np.float32)  # three products, not `a @ centres.T`: BLAS is slow with an inner size of 3
-            cos_centre = a[:, :1] * self.centres32[:, 0]
-            cos_centre += a[:, 1:2] * self.centres32[:, 1]
-            cos_centre += a[:, 2:] * self.centres32[:, 2]
-            candidate |= (cos_centre >= reach) & active[:, None]
+            a = axis.astype(np.float32)
+            # axis . centre - reach = sin t (a_x sin p - a_z cos p) + (a_y cos t - reach): rows times columns
+            # (M, H, W), not `a @ centres.T` (BLAS is slow with an inner size of 3)
+            above = self.sin_theta32 * (a[:, :1] * self.sin_phi32 - a[:, 2:] * self.cos_phi32)[:, None, :]
+            above += (a[:, 1:2] * self.cos_theta32 - reach)[:, :, None]
+            inside = (above >= 0).reshape(M, N)
+            if not np.all(active):
+                inside[~active] = False
+            candidate |= inside
             # float32 for the per-ray test, widened by 1e-6 for its round-off (a ray the test keeps is traced)
-            cones.append((active, axis.astype(np.float32)[:, :, None], cos_a - 1e-6))
+            cones.append((active, a, cos_a - 1e-6))
 
         m_idx, j_idx = np.nonzero(lit & candidate)
         x = x.astype(np.float32)  # the rays' origins, gathered per ray for Embree (float32 there)
@@ -299,7 +309,7 @@ class DirectLighting:
         other direction is unoccluded by construction."""
         in_cone = np.zeros(w.shape[:2], dtype=bool)
         for active, axis, cos_alpha in cones:
-            in_cone |= active[m, None] & ((w @ axis[m])[..., 0] >= cos_alpha[m, None])
+            in_cone |= active[m, None] & (_dot(w, axis[m][:, None, :]) >= cos_alpha[m, None])
         occluded = np.zeros(w.shape[:2], dtype=bool)
         at = np.flatnonzero(in_cone & facing)
         occluded.reshape(-1)[at] = self.caster.occluded(x[m[at // w.shape[1]]], w.reshape(-1, 3)[at])
@@ -320,9 +330,9 @@ class DirectLighting:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), 0
         N = self.grid.size
         per_point = _rays_per_point(k, group)
-        strata = _diagonal_order(k)[((m % group)[:, None] * per_point + np.arange(per_point)) % (k * k)]
-        w = self._cell_points(k)[j[:, None], strata]  # (K, per_point, 3)
-        facing = (w @ n[m, :, None].astype(np.float32))[..., 0] > 0
+        strata = _diagonal_order(k)[(np.arange(group)[:, None] * per_point + np.arange(per_point)) % (k * k)]
+        w = self._cell_points(k).reshape(-1, 3)[(j * (k * k))[:, None] + strata[m % group]]  # (K, per_point, 3)
+        facing = _dot(w, n[m].astype(np.float32)[:, None, :]) > 0
         occluded, rays = self._trace(x, m, w, cones, facing)
         key = (m // group) * N + j
         size = int(key.max()) + 1
