@@ -390,14 +390,20 @@ def search_case():
 
 
 def test_refine_corner_finds_the_object_from_a_guess_5_cm_off(search_case):
+    """Five searches (seeds 0-4: each its own random numbers) from a guess 5 cm off. Measured, 12
+    samples/px in the local search: 2.6, 1.43, 2.03, 1.0, 1.43 cm (median 1.43); with 8 samples/px
+    1.0, 2.6, 4.16, 4.27, 1.58 (median 2.6), which the median and the worst case below would fail."""
     scene, observed, model = search_case
     truth = np.asarray(scene.hidden.position)
-    out = hc.refine_corner(model, observed, truth + np.array([0.04, -0.03]), 0.03**2 * np.eye(2), seed=0)
-    assert out.accepted and out.improvement > 3 * out.noise
-    assert np.linalg.norm(out.position - truth) < 0.02  # measured: 5 cm -> 1.0 cm
-    assert abs(out.height - scene.hidden.height) < 0.03  # fitted from 14 cm (measured: 9 cm, true 8.8)
-    np.testing.assert_array_equal(out.network, truth + np.array([0.04, -0.03]))
-    assert out.renders > 0 and out.seconds > 0
+    errors = []
+    for seed in range(5):
+        out = hc.refine_corner(model, observed, truth + np.array([0.04, -0.03]), 0.03**2 * np.eye(2), seed=seed)
+        assert out.accepted and out.improvement > 3 * out.noise
+        assert abs(out.height - scene.hidden.height) < 0.03  # fitted from 14 cm (measured: 8-9 cm, true 8.8)
+        np.testing.assert_array_equal(out.network, truth + np.array([0.04, -0.03]))
+        assert out.renders > 0 and out.seconds > 0
+        errors.append(np.linalg.norm(out.position - truth))
+    assert np.median(errors) < 0.02 and max(errors) < 0.03
 
 
 def test_refine_corner_keeps_an_estimate_the_data_cannot_improve(search_case):

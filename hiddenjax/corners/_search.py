@@ -13,7 +13,8 @@ a stage all candidates share their random numbers (the loss surface is not re-no
    `heights` object heights, scored at `coarse_samples`.
 2. **Local search.** A compass search (each parameter stepped up and down, the steps halved when
    none improves: the place's down to 1/8, the nuisances' to 1/4) from the `starts` best distinct
-   places, the network's always among them, at `samples`.
+   places, the network's always among them, at `samples` (12 per pixel: the search's own render noise
+   limits where it stops: on 60 T scenes of seed range 7, 8 samples gave a median 1.59 cm, 12 gave 1.22).
 3. **The check.** The best place found against the network's own place with its nuisances fitted
    the same way, on `checks` pairs of fresh renders at `check_samples` (each pair on one seed).
    The estimate moves only if the mean loss decrease exceeds `t_{confidence, checks - 1}` standard
@@ -172,7 +173,7 @@ def _lattice(mean, cov, spread: float, points: int = 5) -> list:
 
 def refine_corner(renderer: DifferentialRenderer, observed, mean, cov, *, heatmap=None,
                   grid: PolarGrid = PolarGrid(), lamp_box=None, heights=(0.09, 0.13, 0.18), spread: float = 2.0,
-                  modes: int = 3, starts: int = 3, coarse_samples: int = 4, samples: int = 8,
+                  modes: int = 3, starts: int = 3, coarse_samples: int = 4, samples: int = 12,
                   check_samples: int = 64, checks: int = 4, confidence: float = 0.95, block: int = 4,
                   aim: int = 0, extra_starts=(), seed: int = 0, workers: int | None = None) -> CornerRefinement:
     """Refine a network's location `mean (2,)` (covariance `cov (2, 2)` m^2) against the renderer (module docstring).
