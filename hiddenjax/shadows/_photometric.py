@@ -17,7 +17,10 @@ the smooth shading bends into, and one lamp's shadow lit by another) plus the li
 receiver (two diffuse bounces, `diffuse_bounce` with `BOUNCE_RAYS` stratified rays per pixel at the
 starting positions, smoothed over `BOUNCE_BLUR` pixels and scaled by `(d0 / d)^2` with the light's
 distance `d` from the occluders' centre: a cup brightens the table around it by a few percent, a
-falloff the light would otherwise move to explain), `r` the distance from the image centre
+falloff the light would otherwise move to explain; where that light is more than `BOUNCE_SHARE`
+of a light's direct light, `b_l(x) > 0.002 h_l(x)`, the pixel is left out: there the model turns on
+where the objects stand, known to a few millimetres, and a pencil modelled 3 mm off its place
+pulled two lamps 7-9 cm off through its bounce term alone), `r` the distance from the image centre
 over the half-diagonal (vignetting is radial: it cannot mimic a lamp's falloff, which is
 centred below the lamp), and `beta` the tone curve's power (`1/gamma`; 1 for a linear photo).
 Pixels at the photo's maximum (within `SATURATION`) are clipped and left out. Its log,
@@ -109,6 +112,7 @@ VIGNETTING_TERMS = 3  # k1 r^2 + k2 r^4 + k3 r^6: two terms leave 2% at a corner
 BOUNCE_RAYS = 256  # stratified cosine-distributed rays per pixel for the objects' bounce light (module docstring)
 RESAMPLES = 6  # refits with the bounce light drawn again, whose spread joins the covariance
 SHARE_SIGMA = float(np.log(2.0))  # the shadows' read of each light's share at the objects: within a factor 2 (1 sd)
+BOUNCE_SHARE = 2e-3  # a pixel whose objects' bounce light is more than this share of a light's direct light is left out
 BOUNCE_BLUR = 2.0  # pixels: the bounce light's Monte Carlo estimate is smoothed over this (a Gaussian sigma)
 NOISE_WIDTH = 8.0  # pixels: the photo's noise is measured over this (a Gaussian sigma of the squared residual)
 
@@ -178,23 +182,32 @@ class _Brightness:
         self.caster = RayCaster(Scene(observed) if observed else scene)  # the falloff alone: no occluders
         self.occluded = RayCaster(scene)
         positions = np.array(positions, np.float64)
-        self.keep = self.kept(positions)
-        if self.keep.sum() < 20:
-            raise ValueError("the photo is black, shadowed or clipped over the fitted pixels: no distance can be "
-                             "read from its brightness")
-        self.pixels = np.asarray(shadows.pixels)[self.keep]
-        self.log_y, self.r2 = np.log(self.y[self.keep]), _radius2(self.pixels, self.shape)
-        self.anchor = occluder_centre(scene)
-        self.points = tuple(np.asarray(a, np.float64)[self.keep] for a in (shadows.points, shadows.normals,
-                                                                            shadows.albedo))
-        self.start = positions
+        self.anchor, self.start, self._last = occluder_centre(scene), positions, None
+        self.taken = self.kept(positions)
+        self._select(self.taken)
         self.bounce = self.bounce_images(self.occluded, 0)
-        self._last = None
+        direct = _unit_images(self.caster, self.shadows, positions).T[self.keep]
+        plain = np.all(self.bounce <= BOUNCE_SHARE * direct, axis=1)  # where the objects' placement does not set it
+        keep = self.keep.copy()
+        keep[np.flatnonzero(keep)[~plain]] = False
+        self._select(keep)
+        self.bounce = self.bounce[plain]
+
+    def _select(self, keep: np.ndarray):
+        """Fit the pixels `keep` `(P,)` of the fitted ones."""
+        if keep.sum() < 20:
+            raise ValueError("the photo is black, shadowed or clipped over the fitted pixels, or lit there mostly by "
+                             "the objects' bounce light: no distance can be read from its brightness")
+        self.keep, self.pixels = keep, np.asarray(self.shadows.pixels)[keep]
+        self.log_y, self.r2 = np.log(self.y[keep]), _radius2(self.pixels, self.shape)
+        self.points = tuple(np.asarray(a, np.float64)[keep] for a in (self.shadows.points, self.shadows.normals,
+                                                                       self.shadows.albedo))
 
     def kept(self, positions) -> np.ndarray:
         """`(P,)` which fitted pixels the fit uses with the lights at `positions`: lit, not clipped, and two
         pixels or more from the photo's shadows (below `SHADOW_RATIO` of its smooth shading) and from
-        every light's hard shadow in the model."""
+        every light's hard shadow in the model. (`__init__` then leaves out those where the objects'
+        bounce light is more than `BOUNCE_SHARE` of a light's direct light.)"""
         H, W = self.shape
         fitted = np.asarray(self.shadows.pixels)
         bare = _unit_images(self.caster, self.shadows, positions)
@@ -471,7 +484,7 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         return found, weight, local, kappa, scales
 
     found, weight, local, kappa, scales = settle(b, z, residual)
-    if not np.array_equal(b.kept(found.x[Q:].reshape(L, 3)), b.keep):  # the found lights shadow other pixels
+    if not np.array_equal(b.kept(found.x[Q:].reshape(L, 3)), b.taken):  # the found lights shadow other pixels
         b = _Brightness(image, scene, shadows, found.x[Q:].reshape(L, 3), shading)
         found, weight, local, kappa, scales = settle(b, found.x, photo_rows(found.x, b))
     J = found.jac  # scaled by the robust loss: J^T J is the Gauss-Newton Hessian of the cost
