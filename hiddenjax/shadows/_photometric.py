@@ -183,11 +183,11 @@ class _Brightness:
         self.occluded = RayCaster(scene)
         positions = np.array(positions, np.float64)
         self.anchor, self.start, self._last = occluder_centre(scene), positions, None
-        self.taken = self.kept(positions)
+        bare = _unit_images(self.caster, self.shadows, positions)  # (L, P): the direct light at the start
+        self.taken = self.kept(positions, bare)
         self._select(self.taken)
         self.bounce = self.bounce_images(self.occluded, 0)
-        direct = _unit_images(self.caster, self.shadows, positions).T[self.keep]
-        plain = np.all(self.bounce <= BOUNCE_SHARE * direct, axis=1)  # where the objects' placement does not set it
+        plain = np.all(self.bounce <= BOUNCE_SHARE * bare.T[self.keep], axis=1)  # where the objects' placement does not set it
         keep = self.keep.copy()
         keep[np.flatnonzero(keep)[~plain]] = False
         self._select(keep)
@@ -203,14 +203,15 @@ class _Brightness:
         self.points = tuple(np.asarray(a, np.float64)[keep] for a in (self.shadows.points, self.shadows.normals,
                                                                        self.shadows.albedo))
 
-    def kept(self, positions) -> np.ndarray:
+    def kept(self, positions, bare=None) -> np.ndarray:
         """`(P,)` which fitted pixels the fit uses with the lights at `positions`: lit, not clipped, and two
         pixels or more from the photo's shadows (below `SHADOW_RATIO` of its smooth shading) and from
         every light's hard shadow in the model. (`__init__` then leaves out those where the objects'
-        bounce light is more than `BOUNCE_SHARE` of a light's direct light.)"""
+        bounce light is more than `BOUNCE_SHARE` of a light's direct light.) `bare (L, P)`, the lights'
+        unit images without the occluders at `positions`, if already traced."""
         H, W = self.shape
         fitted = np.asarray(self.shadows.pixels)
-        bare = _unit_images(self.caster, self.shadows, positions)
+        bare = _unit_images(self.caster, self.shadows, positions) if bare is None else bare
         modelled = np.any((bare > 0) & (_unit_images(self.occluded, self.shadows, positions) < 0.5 * bare), axis=0)
         dark = np.zeros(H * W, np.uint8)
         dark[fitted[(self.y < SHADOW_RATIO * self.u) | modelled]] = 1
