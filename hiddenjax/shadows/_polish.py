@@ -196,21 +196,16 @@ class _Model:
         two candidates are compared by the same loss."""
         if self.U is None:
             return (*_fit_channels(columns, self.Y, self.ambient), None)
-        visible = np.divide(columns, plains, out=np.zeros_like(plains), where=plains > 0)
-        F = np.concatenate([visible, np.ones((len(visible), 1))], axis=1) if self.ambient else visible
-        Q, R = np.linalg.qr(F)  # the ratio's least squares, reduced to F's columns (the ambient's sign free)
-        fits, L = [], columns.shape[1]
-        for c in range(self.Y.shape[1]):
-            start, _ = scipy.optimize.nnls(np.concatenate([R, -R[:, -1:]], axis=1) if self.ambient else R,
-                                           Q.T @ (self.Y[:, c] / self.U[:, c]))
-            fits.append(_gain_fit(columns, plains, self.Y[:, c], self.U[:, c], start[:L],
-                                  start[L] - start[L + 1] if self.ambient else 0.0, self.ambient))
-        intensities, a = np.stack([f[0] for f in fits], axis=1), np.array([f[1] for f in fits])
-        return intensities, a, sum(f[2] for f in fits), _gain(self.U, plains, intensities, a)
+        ratio, a, _ = _fit_channels(np.divide(columns, plains, out=np.zeros_like(plains), where=plains > 0),
+                                    self.Y / self.U, self.ambient)  # y / u ~ sum_l I_l V_l + a
+        fits = [_gain_fit(columns, plains, self.Y[:, c], self.U[:, c], ratio[:, c], a[c], self.ambient)
+                for c in range(self.Y.shape[1])]
+        return (np.stack([f[0] for f in fits], axis=1), np.array([f[1] for f in fits]), sum(f[2] for f in fits),
+                np.stack([f[3] for f in fits], axis=1))
 
 
 def _gain_fit(h, h0, y, u, intensities, a: float, ambient: bool):
-    """`(I (L,), a, |r|^2)` minimizing `|r|^2`, `r = g (h I + a) - y`, over `I >= 0` (and `a`, with
+    """`(I (L,), a, |r|^2, g (P,))` minimizing `|r|^2`, `r = g (h I + a) - y`, over `I >= 0` (and `a`, with
     `ambient`), the gain `g = (u / m0) / <u / m0>`, `m0 = h0 I + a`, moving with them (one channel: `h, h0
     (P, L)`, `y, u (P,)`), from `intensities` and `a`. The ambient stays at or above `AMBIENT_FLOOR`
     times the dimmest pixel's `h0 I`: the view without the occluders stays lit everywhere (`m0 > 0`; a
@@ -251,7 +246,8 @@ def _gain_fit(h, h0, y, u, intensities, a: float, ambient: bool):
     model = residual(theta) + y  # the scale that fits it best: the model is linear in a common factor
     scale = float(model @ y) / max(float(model @ model), 1e-300)
     theta, cost = _bounded_least_squares(residual, jacobian, theta * (scale if scale > 0 else 1.0), lowest)
-    return theta[:L], float(theta[L]) if ambient else 0.0, cost
+    q = parts(theta)[1]
+    return theta[:L], float(theta[L]) if ambient else 0.0, cost, q / q.mean()
 
 
 def _bounded_least_squares(residual, jacobian, theta, lowest, iterations: int = 100):
@@ -282,15 +278,6 @@ def _bounded_least_squares(residual, jacobian, theta, lowest, iterations: int = 
         if not improved:
             break
     return theta, cost
-
-
-def _gain(U: np.ndarray, h0: np.ndarray, intensities: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """`(P, C)` each pixel's albedo relative to the scene's, `u / m0` with `m0 = h0 I + a` the model of the
-    view without the occluders (`h0 (P, L)`), scaled to mean 1 per channel."""
-    m0 = h0 @ intensities + a
-    m0 = np.maximum(m0, 1e-6 * np.maximum(np.abs(m0).max(axis=0), 1e-300))  # a negative black level: kept finite
-    g = U / m0
-    return g / g.mean(axis=0)
 
 
 def _normal_equations(model: _Model, chosen, columns, plains, fitted, delta: float):
