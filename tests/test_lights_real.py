@@ -184,6 +184,43 @@ def test_the_tone_fit_keeps_a_cameras_power_and_no_negative_light():
     assert loss > 10 * np.sum(free.fun**2), (loss, free.cost)
 
 
+def test_the_tone_prior_is_the_penalized_minimum_and_reaches_both_limits():
+    """A lamp's falloff seen through a power of 0.6 (`log y = C + 0.6 log h + vignetting` plus noise),
+    fitted with a Gaussian prior `(0.45, sd)` on the power: the fit is the minimum of the robust photo
+    loss plus `((beta - 0.45) / sd)^2` (scipy's `minimize` from another start finds none lower, and
+    the two agree), the power lands between the prior's mean and the photo's, and tends to the
+    photo's as `sd` grows and to the mean as it shrinks. A prior that is not `(mean, sd)` with the
+    mean within `TONE_POWER` and `sd > 0` is refused."""
+    from hiddenjax.shadows import _photometric as ph
+
+    rng = np.random.default_rng(5)
+    x, z = rng.uniform(-0.3, 0.3, (2, 3000))
+    d2 = (x - 0.1) ** 2 + (z + 0.05) ** 2 + 0.5**2
+    h = (0.5 / np.sqrt(d2)) ** 3 / d2
+    r2 = (x**2 + z**2) / 0.18
+    log_y = 0.2 + 0.6 * np.log(h) - 0.1 * r2 + rng.normal(0, 0.01, h.size)
+    free = ph._log_fit(h[:, None], log_y, r2)[0][1]
+    assert abs(free - 0.6) < 0.01, free
+    powers = {}
+    for sd in (1e-4, 0.002, 1e3):
+        params, loss, residual = ph._log_fit(h[:, None], log_y, r2, tone=(0.45, sd))
+        powers[sd] = params[1]
+        assert residual.shape == log_y.shape
+        objective = lambda q: (np.sum(2 * ph.LOG_SCALE**2 * (np.sqrt(1 + (ph._log_residual(q, h[:, None], log_y, r2)
+                                                                           / ph.LOG_SCALE) ** 2) - 1))
+                               + ((q[1] - 0.45) / sd) ** 2)
+        assert abs(objective(params) - loss) < 1e-9 * max(loss, 1.0), (objective(params), loss)
+        other = scipy.optimize.minimize(objective, params + np.array([0.05, 0.02, 0.01, 0, 0, 0.01]), method="L-BFGS-B",
+                                        bounds=[(None, None), ph.TONE_POWER, *[(None, None)] * 3, (0, None)],
+                                        options=dict(ftol=1e-15, gtol=1e-12, maxiter=5000))
+        assert other.fun >= loss - 1e-6 * loss, (sd, other.fun, loss)
+    assert abs(powers[1e-4] - 0.45) < 1e-3 and abs(powers[1e3] - free) < 1e-4, powers
+    assert 0.45 < powers[0.002] < free, powers
+    for bad in ((0.45, 0.0), (2.0, 0.1), (0.45, np.nan), "0.45", (0.45,)):
+        with pytest.raises(ValueError, match="tone must be"):
+            ph._checked_tone(bad)
+
+
 def _turned(direction, degrees):
     """`direction` turned by `degrees` about a horizontal axis across it."""
     axis = np.cross(direction, [0.0, 1.0, 0.0])
@@ -328,7 +365,10 @@ def test_pixels_the_objects_bounce_light_sets_are_left_out(faulty_desk, monkeypa
 def test_a_curve_no_camera_has_is_warned_of(faulty_desk):
     """The desk's photo taken back through its tone curve and encoded with a power of 2 (steeper
     than linear, no camera's): the joint fit stops at the end of `TONE_POWER` and says so; the
-    photo's own curve (1/2.2) is not warned of (`test_the_falloff_places_the_lamp_...`)."""
+    photo's own curve (1/2.2) is not warned of (`test_the_falloff_places_the_lamp_...`). With a
+    camera's prior on the power (`CAMERA_TONE`) the power stays near it and the residual's
+    correlation says the photo is not that curve; a power more than `TONE_SIGMAS` standard deviations
+    from the prior's mean is said as such."""
     scene, shadows, photo, _ = faulty_desk
     anchor = sh._search.occluder_centre(scene)
     true = np.linalg.norm(LIGHT - anchor)
@@ -339,6 +379,16 @@ def test_a_curve_no_camera_has_is_warned_of(faulty_desk):
     assert found.beta >= 0.99 * sh._photometric.TONE_POWER[1], found.beta
     notes = sh._fit._falloff_notes(found)
     assert any("power" in note and "no camera's curve" in note for note in notes), notes
+    # a camera's prior holds the power near its own (the photo trades it for the lamp's distance and the
+    # ambient along a flat valley), and the residual it leaves is what says so
+    held = sh.fit_falloff(steep, scene, shadows, LIGHT[None], sh.smooth_shading(steep, np.asarray(shadows.pixels)),
+                          prior[None], resamples=0, tone=sh.CAMERA_TONE)
+    assert held.tone == sh.CAMERA_TONE and held.beta < 0.7 < found.beta, (held.beta, found.beta)
+    assert any(note.startswith("the lamps' falloff leaves a residual correlated") for note in sh._fit._falloff_notes(held))
+    mean, sd = sh.CAMERA_TONE  # a power more than TONE_SIGMAS sd from the prior's mean is said as such
+    for sigmas in (2.5, 3.5):
+        notes = sh._fit._falloff_notes(held._replace(beta=mean + sigmas * sd, misfit=1.0))
+        assert any("standard deviations from the expected" in note for note in notes) == (sigmas > 3), notes
 
 
 def test_light_the_scene_lacks_is_warned_of(faulty_desk):
@@ -476,9 +526,9 @@ def test_intervals_from_a_few_refits_hold_the_truth_at_their_level(share, flatne
 def test_lights_on_a_faulty_8bit_photo_of_any_size(tmp_path, capsys):
     """`hiddenjax lights` on an 8-bit PNG twice the scene file's camera size (rendered with two diffuse
     bounces), vignetted and gamma-encoded, of a desk whose scene file (primitives) puts the objects 3 mm off: the defaults for
-    a camera's photo (clearance, smooth shading) find the lamp's direction within 2.5 degrees and its
+    a camera's photo (clearance, smooth shading, the tone curve's prior) find the lamp's direction within 2.5 degrees and its
     distance within 10%, and the JSON carries each light's cone and interval; a photo of another
-    aspect ratio is refused in one line."""
+    aspect ratio, and a `--tone-power` that is not a prior, are refused in one line."""
     truth, camera = desk(size=(128, 96))
     photo = hj.render_point_lights(truth, camera, LIGHT[None], [0.05], pixel_samples=9, bounces=2)
     r2 = _radius2(96, 128)
@@ -509,12 +559,20 @@ def test_lights_on_a_faulty_8bit_photo_of_any_size(tmp_path, capsys):
     assert abs(response["gamma"] / 2.0 - 1) < 0.1 and response["vignetting"][0] < 0 and response["converged"], response
     assert 0 <= response["refits_share"][0] < 1 and response["prior_scale"][0] >= 1, response
     assert 0 <= response["ambient"] < 0.05, response  # the desk has no light but the lamp's
+    assert response["tone_prior"] == list(sh.CAMERA_TONE), response  # a camera's photo as written
     assert "seen from the objects" in capsys.readouterr().out
     hj.io.write_png(tmp_path / "square.png", np.zeros((64, 64), np.uint8))
     assert main(["lights", str(tmp_path / "desk.toml"), str(tmp_path / "square.png"), "-o",
                  str(tmp_path / "x.json")]) == 1
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "another aspect ratio" in err and not (tmp_path / "x.json").exists()
+    for extra, words in ((["--tone-power", "0.45"], "takes MEAN SD"), (["--tone-power", "3", "0.1"], "within 0.25-1.5"),
+                         (["--tone-power", "0.45", "0"], "SD > 0"),
+                         (["--tone-power", "free", "--shading", "none"], "prior of --shading smooth")):
+        assert main(["lights", str(tmp_path / "desk.toml"), str(tmp_path / "photo.png"), "-o", str(tmp_path / "x.json"),
+                     *extra]) == 1
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and words in err and not (tmp_path / "x.json").exists(), err
 
 
 def test_fits_to_distrust_say_so():

@@ -43,6 +43,10 @@ def add_parsers(sub) -> None:
                         "curve, a falloff the scene does not know) for each light's direction, then each light's place "
                         "from the lamp's falloff with the tone curve and vignetting fitted; none: the photo as calibrated radiance. Default: "
                         "smooth for 8/16-bit photos (a camera's), none for EXR/HDR and with --reference")
+    p.add_argument("--tone-power", nargs="+", metavar="MEAN SD | free",
+                   help="with --shading smooth: a Gaussian prior on the photo's tone curve power (1/gamma), whose "
+                        "distance trades with the lamps' along a flat valley; 'free' leaves it free within 0.25-1.5. "
+                        "Default 0.4545 0.1 (a camera's photo as written), 1.0 0.22 with --srgb")
     p.add_argument("--clearance", type=float,
                    help="metres: leave out the pixels this close to the objects' modelled outline (a real object "
                         "a few mm from where the scene puts it must not pass for shadow); default 0.005 for 8/16-bit "
@@ -71,6 +75,25 @@ def _fit_size(camera, image, width, name):
     return (camera if (camera.width, camera.height) == (width, height) else camera.resized(width, height)), image
 
 
+def _tone_prior(words, srgb: bool, shading: str):
+    """`--tone-power`'s prior `(mean, sd)` on the tone curve's power, or None for 'free' (module docstring
+    of `hiddenjax.shadows._photometric`): a camera's curve by default, sRGB's remainder after `--srgb`."""
+    if words is None:
+        return (1.0, 2.2 * _shadows.CAMERA_TONE[1]) if srgb else _shadows.CAMERA_TONE
+    if shading != "smooth":
+        raise ValueError("--tone-power is the prior of --shading smooth's falloff fit; drop it or use --shading smooth")
+    if words == ["free"]:
+        return None
+    try:
+        mean, sd = (float(w) for w in words)
+    except ValueError:
+        raise ValueError(f"--tone-power takes MEAN SD (e.g. 0.4545 0.1) or 'free', got {' '.join(words)}") from None
+    lo, hi = _shadows.TONE_POWER
+    if not (lo <= mean <= hi and np.isfinite(sd) and sd > 0):
+        raise ValueError(f"--tone-power's MEAN must be within {lo}-{hi} and SD > 0, got {mean} {sd}")
+    return mean, sd
+
+
 def lights(args) -> dict:
     """`hiddenjax lights`: point lights from the shadows in a photo of a known scene (`fit_lights`)."""
     out = _output(args.output, (".json",))
@@ -87,6 +110,7 @@ def lights(args) -> dict:
         raise ValueError("--shading smooth stands in for a --reference photo; give one of them")
     if shading == "smooth" and args.no_polish:
         raise ValueError("--shading smooth needs the polish (it fits the photo's ratio to its shading); drop --no-polish")
+    tone = _tone_prior(args.tone_power, args.srgb, shading)
     if not np.all(np.isfinite(image)):
         raise ValueError(f"{args.image} contains NaN or infinite pixels; fix or mask them first")
     reference = None
@@ -129,7 +153,7 @@ def lights(args) -> dict:
         fit = _shadows.fit_lights(image, spec.scene, camera, init, count=count, reach=args.reach,
                                   polish=not args.no_polish, mask=mask, shadows=shadows, reference=reference,
                                   shading=None if shading == "none" else shading, box=box,
-                                  clearance=clearance or None)
+                                  clearance=clearance or None, tone=tone)
     seconds = time.perf_counter() - t0
     if shading == "smooth":  # the picture's model: the photo's smooth shading times the ratio, as with a reference
         reference = _shadows.smooth_shading(image, np.asarray(shadows.pixels))
@@ -184,6 +208,7 @@ def _response(falloff) -> dict | None:
     if falloff is None:
         return None
     share = [float(np.trace(R) / max(np.trace(C), 1e-300)) for R, C in zip(falloff.resampled, falloff.covariance)]
-    return dict(tone_power=falloff.beta, gamma=1.0 / falloff.beta, vignetting=falloff.vignetting.tolist(),
+    return dict(tone_power=falloff.beta, gamma=1.0 / falloff.beta,
+                tone_prior=None if falloff.tone is None else list(falloff.tone), vignetting=falloff.vignetting.tolist(),
                 ambient=falloff.ambient, prior_scale=falloff.prior_scale.tolist(), refits_share=share,
                 converged=falloff.converged)

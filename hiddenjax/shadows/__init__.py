@@ -38,6 +38,8 @@ from ._receiver import smooth_shading as smooth_shading
 from ._polish import LightPolish as LightPolish
 from ._polish import polish_lights as polish_lights
 from ._polish import residual_correlation as residual_correlation
+from ._photometric import CAMERA_TONE as CAMERA_TONE
+from ._photometric import TONE_POWER as TONE_POWER
 from ._photometric import DistanceScan as DistanceScan
 from ._photometric import FalloffFit as FalloffFit
 from ._photometric import fit_falloff as fit_falloff

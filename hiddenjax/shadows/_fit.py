@@ -18,7 +18,7 @@ import optimistix as optx
 
 from ..scene import Camera, Scene
 from ._polish import polish_lights
-from ._photometric import TONE_POWER, FalloffFit, fit_falloff
+from ._photometric import CAMERA_TONE, TONE_POWER, FalloffFit, _checked_tone, fit_falloff
 from ._receiver import object_clearance, smooth_shading
 from ._search import _occluder_bounds, check_outside, hard_fit, occluder_centre, search_lights
 from ._shading import ShadowScene, light_images
@@ -104,6 +104,7 @@ def fit_lights(
     clearance: float | None = None,
     shading: str | None = None,
     box=None,
+    tone=CAMERA_TONE,
 ) -> LightFit:
     """Fit point-light positions and intensities to an image lit by those lights (eq. 4.10-4.11).
 
@@ -154,6 +155,11 @@ def fit_lights(
       photos without a reference. Default none.
     - `box (2, 3)`: the region the search looks in without `init`, min and max corners in metres
       (default `default_box`, a few object sizes around the occluders).
+    - `tone`: with `shading="smooth"`, a Gaussian prior `(mean, sd)` on the photo's tone curve power
+      `beta` (`fit_falloff`; its distance trades with `beta` along a flat valley). Default
+      `CAMERA_TONE`, `(1/2.2, 0.1)`: a camera's 8/16-bit photo as it was written; a photo decoded
+      through the sRGB curve is about `(1.0, 0.22)`, a linear one `(1.0, 0.02)`; `None` leaves the
+      power free within `TONE_POWER`.
 
     **Returns:** a `LightFit`.
     """
@@ -164,6 +170,7 @@ def fit_lights(
     if shading not in (None, "smooth"):
         raise ValueError(f"shading must be None or 'smooth', got {shading!r}")
     if shading == "smooth":
+        tone = _checked_tone(tone)
         if reference is not None:
             raise ValueError("shading='smooth' stands in for a reference photo; give one of them")
         reference = smooth_shading(image, np.asarray(shadows.pixels))
@@ -226,7 +233,7 @@ def fit_lights(
         prior = _with_placement(covariance, positions, scene, clearance)
         found = fit_falloff(image, scene, shadows, positions, reference, prior, box=box_used,
                             placement=0.5 * (clearance or 0.0),  # (the spread `_with_placement` gives the objects)
-                            intensities=intensities)
+                            intensities=intensities, tone=tone)
         positions, covariance = found.positions, found.covariance
         trajectory.append(positions)
     notes = _distrust(positions, a, float(scale), None if searched is None else searched.box, shading == "smooth")
@@ -261,6 +268,7 @@ def _with_placement(covariance, positions, scene: Scene, clearance):
 
 AMBIENT_TOLERANCE = 0.01  # a fitted ambient below -1% of the photo's RMS brightness is a warning
 CORRELATION_LIMIT = 25.0  # pixels: a falloff residual correlated over a larger area is a warning
+TONE_SIGMAS = 3.0  # a tone curve's power farther than this many of its prior's sd from the mean is a warning
 
 
 def _falloff_notes(found) -> list[str]:
@@ -285,6 +293,13 @@ def _falloff_notes(found) -> list[str]:
                      f"({TONE_POWER[0]}-{TONE_POWER[1]}, gamma {1 / TONE_POWER[1]:.2g}-{1 / TONE_POWER[0]:.2g}): no "
                      "camera's curve; the photo's brightness is not the lamps' falloff (a lamp lost, light the scene "
                      "lacks, an edited photo), and the distances may be off by more than their intervals")
+    if found.tone is not None and abs(found.beta - found.tone[0]) > TONE_SIGMAS * found.tone[1]:
+        mean, sd = found.tone
+        notes.append(f"the tone curve's fitted power {found.beta:.3g} (gamma {1 / found.beta:.2g}) is "
+                     f"{abs(found.beta - mean) / sd:.1f} standard deviations from the expected {mean:.3g} +- {sd:.2g} "
+                     "(tone=): the photo's brightness is not the lamps' falloff through that curve (light the scene "
+                     "lacks, an edited or linear photo: give its tone), and the distances may be off by more than "
+                     "their intervals")
     if not found.converged:
         notes.append("the fit of the lamps' falloff stopped at its evaluation limit before it converged: the "
                      "distances and their intervals are where it stopped, not at the best fit; a start near "
