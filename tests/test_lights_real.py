@@ -314,6 +314,31 @@ def test_the_falloff_places_the_lamp_and_corrects_a_misread_shadow(faulty_desk, 
         sh.fit_falloff(photo, scene, shadows, start[None], shading, prior)
 
 
+def test_the_tone_priors_for_a_written_and_an_srgb_decoded_photo(faulty_desk):
+    """The desk's photo (gamma 2.2) as written, with `CAMERA_TONE`, and decoded through the sRGB
+    curve, with the prior `hiddenjax lights --srgb` gives it (`(1.0, 0.22)`): each places the lamp
+    within 1 degree and 3% of its distance, the power within 10%
+    of what is left of the curve (1/2.2, and about 1 after the decoding), and no warning."""
+    from hiddenjax.cli._lights import _tone_prior
+
+    scene, shadows, photo, _ = faulty_desk
+    anchor = sh._search.occluder_centre(scene)
+    true = np.linalg.norm(LIGHT - anchor)
+    prior = _direction_prior((LIGHT - anchor) / true, 1.0, 1.5 * true)
+    start = anchor + 1.5 * (LIGHT - anchor)
+    decoded = hj.io.srgb_to_linear(photo)
+    for image, srgb, power in ((photo, False, 1 / 2.2), (decoded, True, 1.0)):
+        tone = _tone_prior(None, srgb, "smooth")
+        found = sh.fit_falloff(image, scene, shadows, start[None], sh.smooth_shading(image, np.asarray(shadows.pixels)),
+                               prior[None], resamples=0, tone=tone)
+        assert found.tone == tone and abs(found.beta / power - 1) < 0.1, (srgb, found.beta)
+        v = found.positions[0] - anchor
+        assert np.degrees(np.arccos(v @ (LIGHT - anchor) / np.linalg.norm(v) / true)) < 1.0
+        assert abs(np.linalg.norm(v) / true - 1) < 0.03, np.linalg.norm(v) / true
+        assert not sh._fit._falloff_notes(found), sh._fit._falloff_notes(found)
+    assert _tone_prior(None, True, "smooth") == (1.0, 2.2 * sh.CAMERA_TONE[1]) and _tone_prior(["free"], False, "smooth") is None
+
+
 def test_a_fill_light_is_the_ambient_and_no_ambient_is_not_negative(faulty_desk):
     """The desk's photo (no light but the lamp's: `ambient` at its bound, 0) and the same desk under a
     fill light of 20% of the lamp's mean radiance added before the lens and the tone curve: the fit

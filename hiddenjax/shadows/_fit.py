@@ -169,8 +169,8 @@ def fit_lights(
     shadows = ShadowScene.from_scene(scene, camera, mask) if shadows is None else shadows
     if shading not in (None, "smooth"):
         raise ValueError(f"shading must be None or 'smooth', got {shading!r}")
+    tone = _checked_tone(tone)
     if shading == "smooth":
-        tone = _checked_tone(tone)
         if reference is not None:
             raise ValueError("shading='smooth' stands in for a reference photo; give one of them")
         reference = smooth_shading(image, np.asarray(shadows.pixels))

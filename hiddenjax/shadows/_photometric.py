@@ -42,8 +42,8 @@ robust loss per pixel at the best `t` and `kappa` the residual's correlation are
 The power and the distance share a valley: a higher `beta` steepens the falloff's contrast as a
 farther lamp flattens it, and a positive ambient flattens it again. On two-lamp desks rendered by
 Mitsuba's path tracer, gamma 1.8-2.4, the free power ran to 0.68 and 0.81 (truth 0.49 and 0.55)
-with the lamps 5 cm long and outside their intervals; with the power held at the truth the same
-fits came within 1.1 degrees and 0.7 cm. A camera's 8/16-bit photo as it was written has a
+with lamps up to 5 cm long, three of the four outside their cones or intervals; with the power
+held at the truth the same fits came within 1.1 degrees and 1.7 cm, all inside. A camera's 8/16-bit photo as it was written has a
 curve near sRGB's (a power of about 1/2.2: sRGB, Rec. 709 and the cameras' JPEG curves lie within
 gamma 1.8-2.6), so `fit_lights(shading="smooth")` adds the Gaussian prior `CAMERA_TONE` = (1/2.2,
 0.1) on `beta` as one more squared row, `((beta - mean) / sd)^2`, in the scan and the joint fit
