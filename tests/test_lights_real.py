@@ -206,9 +206,9 @@ def test_the_tone_prior_is_the_penalized_minimum_and_reaches_both_limits():
         params, loss, residual = ph._log_fit(h[:, None], log_y, r2, tone=(0.45, sd))
         powers[sd] = params[1]
         assert residual.shape == log_y.shape
-        objective = lambda q: (np.sum(2 * ph.LOG_SCALE**2 * (np.sqrt(1 + (ph._log_residual(q, h[:, None], log_y, r2)
-                                                                           / ph.LOG_SCALE) ** 2) - 1))
-                               + ((q[1] - 0.45) / sd) ** 2)
+        objective = lambda q, sd=sd: (np.sum(2 * ph.LOG_SCALE**2 * (np.sqrt(1 + (ph._log_residual(q, h[:, None], log_y, r2)
+                                                                                  / ph.LOG_SCALE) ** 2) - 1))
+                                      + ((q[1] - 0.45) / sd) ** 2)
         assert abs(objective(params) - loss) < 1e-9 * max(loss, 1.0), (objective(params), loss)
         other = scipy.optimize.minimize(objective, params + np.array([0.05, 0.02, 0.01, 0, 0, 0.01]), method="L-BFGS-B",
                                         bounds=[(None, None), ph.TONE_POWER, *[(None, None)] * 3, (0, None)],
