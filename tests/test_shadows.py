@@ -572,6 +572,9 @@ def test_search_and_fit_find_a_light_without_a_guess(lit_sphere):
         sh.search_lights(photo, setup.scene, setup.camera, count=0)
     with pytest.raises(ValueError, match="box must be"):
         sh.search_lights(photo, setup.scene, setup.camera, box=[[0, 0, 0], [0, 1, 1]])
+    for edge in (-1, 1.5):
+        with pytest.raises(ValueError, match="edge must be a whole number of pixels"):
+            sh.search_lights(photo, setup.scene, setup.camera, edge=edge)
     with pytest.raises(ValueError, match="reach must be"):
         sh.fit_lights(photo, setup.scene, setup.camera, light, reach=-1.0)
 

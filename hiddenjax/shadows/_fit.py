@@ -142,9 +142,12 @@ def fit_lights(
     - `clearance`: metres; leave out the pixels within this distance of the occluders' modelled
       silhouette (`object_clearance`): a real object a few millimetres from where the scene puts
       it must not pass for shadow; half of it is the objects' placement uncertainty in
-      `covariance`. With a prepared `shadows`, build it with the mask `object_clearance(...)` (the
-      clearance then only widens the covariance). Default none (a rendered photo's object is where
-      the scene says).
+      `covariance`. With two or more lights the search leaves out that width in pixels about each
+      placed light's modelled shadow edge while placing the others (`search_lights`' `edge`): the
+      misfit the objects' error leaves along a strong shadow must not draw a second light. With a
+      prepared `shadows`, build it with the mask `object_clearance(...)` (the clearance then only
+      widens the covariance and sets the search's `edge`). Default none (a rendered photo's object
+      is where the scene says).
     - `shading`: `"smooth"` fits the photo's ratio to its own smooth brightness field
       (`smooth_shading`: vignetting, a tone curve's slope, a falloff the scene does not know) as if
       it were the reference photo, which places each light's direction; then `fit_falloff` places
@@ -188,7 +191,7 @@ def fit_lights(
                 raise ValueError(f"reach must be a positive distance in metres, got {reach}")
             box, count = np.stack([guess.min(axis=0) - reach, guess.max(axis=0) + reach]), len(guess)
         searched = search_lights(image, scene, camera, count, box=box, ambient=ambient, shadows=shadows,
-                                 reference=reference)
+                                 reference=reference, edge=_shadow_edge(scene, camera, clearance))
         init = searched.positions
         temperature = (1000.0, 3000.0) if temperature is None else temperature
     temperature = (100.0, 1000.0) if temperature is None else temperature
@@ -243,6 +246,16 @@ def fit_lights(
         warnings.warn(note, stacklevel=2)
     return LightFit(positions, intensities, np.array(history), np.stack(trajectory), temps, a, *channels,
                     covariance, tuple(notes), found)
+
+
+def _shadow_edge(scene: Scene, camera: Camera, clearance) -> int:
+    """Pixels: the `clearance` at the occluders' depth, rounded up; how far a shadow's modelled edge may
+    lie from the photo's (`search_lights`' `edge`)."""
+    if not clearance:
+        return 0
+    depth = float((occluder_centre(scene) - np.asarray(camera.origin, np.float64)) @ np.asarray(camera.rotation, np.float64)[2])
+    focal = float(np.max(np.asarray(camera.intrinsics)[:2]))
+    return int(np.ceil(clearance * focal / max(depth, 1e-9)))
 
 
 def _with_placement(covariance, positions, scene: Scene, clearance):

@@ -24,6 +24,7 @@ with the exact ratio model.
 
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 import scipy.optimize
 
@@ -190,7 +191,7 @@ def positive_reference(u: np.ndarray) -> np.ndarray:
 
 def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=None, points: int = 12,
                   starts: int = 6, refine: int = 6, ambient: bool = True, mask=None, shadows: ShadowScene | None = None,
-                  reference=None) -> LightSearch:
+                  reference=None, edge: int = 0) -> LightSearch:
     """Find `count` point lights from a photo without an initial guess (global search, hard shadows).
 
     **Arguments:**
@@ -212,6 +213,12 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
       fitted pixels): the search fits the photo's ratio to it by visibilities, for a surface whose
       albedo differs from the scene's (a textured table); `intensities` and `ambient` are then
       those of the ratio.
+    - `edge`: pixels; each placed light's modelled shadow edge, widened by this radius on either
+      side, is left out when the other lights are placed (picked, re-seated and refined): where an
+      object stands a few millimetres from its modelled place, or a shadow is a few pixels wide
+      (the pixel-centre model has no partial pixels), a strong shadow's misfit there outweighs a
+      faint shadow elsewhere, and a second light beside the first that fills it wins over the
+      light that casts the faint one. `fit_lights` sets it from its `clearance`. Default 0.
 
     **Returns:** a `LightSearch`; its `positions` are a start for `fit_lights`.
     """
@@ -219,6 +226,8 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
         raise ValueError(f"count must be a positive integer, got {count!r}")
     if not isinstance(points, (int, np.integer)) or points < 2:
         raise ValueError(f"points must be an integer >= 2 (grid points per axis), got {points!r}")
+    if not isinstance(edge, (int, np.integer)) or edge < 0:
+        raise ValueError(f"edge must be a whole number of pixels >= 0, got {edge!r}")
     box = default_box(scene) if box is None else np.asarray(box, np.float64)
     if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] <= box[0]):
         raise ValueError(f"box must be (2, 3) finite min and max corners with max > min, got {box.tolist()}")
@@ -256,7 +265,8 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
                 local = local[~_inside_occluders(scene, local)]
                 local_images = _unit_images(caster, shadows, local, shade=shade)
                 scored += len(local)
-                best = _best_candidate(np.delete(columns, j, axis=1), local_images, y, ambient)
+                rows = clear_of(np.delete(columns, j, axis=1))
+                best = _best_candidate(np.delete(columns, j, axis=1)[rows], local_images[:, rows], y[rows], ambient)
                 chosen[j] = local[best]
                 columns[:, j] = local_images[best]
             spacing = spacing / 2
@@ -275,12 +285,28 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
         apart = np.all([np.max(np.abs(grid - c) / spacing, axis=1) > 1.5 for c in placed], axis=0)
         return apart if apart.any() else np.ones(len(grid), bool)
 
+    pixels, shape = np.asarray(shadows.pixels), shadows.image_shape
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
+
+    def clear_of(held):
+        """`(P,)` bool: the rows farther than `edge` pixels from every held light's modelled shadow
+        edge (its columns `held (P, K)`: the unit image is zero in the shadow)."""
+        keep = np.ones(len(y), bool)
+        if edge == 0:
+            return keep
+        for column in held.T:
+            lit, dark = np.zeros(shape[0] * shape[1], np.uint8), np.zeros(shape[0] * shape[1], np.uint8)
+            lit[pixels], dark[pixels] = column > 0, column <= 0
+            near = cv2.dilate(lit.reshape(shape), disc) & cv2.dilate(dark.reshape(shape), disc)
+            keep &= near.reshape(-1)[pixels] == 0
+        return keep if keep.sum() > held.shape[1] + 2 else np.ones(len(y), bool)
+
     first = _single_losses(images, y, ambient)
     for start in np.argsort(first)[:starts]:  # the best coarse candidates each start a greedy pass
         chosen, columns = [grid[start]], images[start][:, None]
         for _ in range(count - 1):  # greedy: the candidate that lowers the residual most, earlier lights refitted
-            apart = away_from(chosen)
-            pick = np.flatnonzero(apart)[_best_candidate(columns, images[apart], y, ambient)]
+            apart, rows = away_from(chosen), clear_of(columns)
+            pick = np.flatnonzero(apart)[_best_candidate(columns[rows], images[np.ix_(apart, rows)], y[rows], ambient)]
             chosen.append(grid[pick])
             columns = np.concatenate([columns, images[pick][:, None]], axis=1)
         chosen, columns, rss, scored = refine_all(chosen, columns, scored)
@@ -288,9 +314,9 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
             best_run = (chosen, columns, rss)
     chosen, columns, rss = best_run
     for j in range(count if count > 1 else 0):  # re-seat each light, the others held: a greedy pick can be wrong
-        others = [c for k, c in enumerate(chosen) if k != j]
-        apart = away_from(others)
-        pick = np.flatnonzero(apart)[_best_candidate(np.delete(columns, j, axis=1), images[apart], y, ambient)]
+        others, held = [c for k, c in enumerate(chosen) if k != j], np.delete(columns, j, axis=1)
+        apart, rows = away_from(others), clear_of(held)
+        pick = np.flatnonzero(apart)[_best_candidate(held[rows], images[np.ix_(apart, rows)], y[rows], ambient)]
         trial, trial_columns = list(chosen), columns.copy()
         trial[j], trial_columns[:, j] = grid[pick], images[pick]
         trial, trial_columns, trial_rss, scored = refine_all(trial, trial_columns, scored, lights=[j])
