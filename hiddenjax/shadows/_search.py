@@ -138,6 +138,11 @@ def _single_losses(images: np.ndarray, y: np.ndarray, ambient: bool) -> np.ndarr
     return np.where(I > 0, rss, yy - y1**2 / P)
 
 
+def _block(images: np.ndarray, candidates: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """`images[candidates][:, rows]` (boolean masks) in one copy: one index where every row is kept."""
+    return images[candidates] if rows.all() else images[np.ix_(candidates, rows)]
+
+
 def _best_candidate(others: np.ndarray, images: np.ndarray, y: np.ndarray, ambient: bool) -> int:
     """Index of the candidate image `h (C, P)` whose non-negative fit beside the fixed lights'
     columns `others (P, K)` (all refitted) leaves the smallest residual.
@@ -306,7 +311,7 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
         chosen, columns = [grid[start]], images[start][:, None]
         for _ in range(count - 1):  # greedy: the candidate that lowers the residual most, earlier lights refitted
             apart, rows = away_from(chosen), clear_of(columns)
-            pick = np.flatnonzero(apart)[_best_candidate(columns[rows], images[np.ix_(apart, rows)], y[rows], ambient)]
+            pick = np.flatnonzero(apart)[_best_candidate(columns[rows], _block(images, apart, rows), y[rows], ambient)]
             chosen.append(grid[pick])
             columns = np.concatenate([columns, images[pick][:, None]], axis=1)
         chosen, columns, rss, scored = refine_all(chosen, columns, scored)
@@ -316,7 +321,7 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
     for j in range(count if count > 1 else 0):  # re-seat each light, the others held: a greedy pick can be wrong
         others, held = [c for k, c in enumerate(chosen) if k != j], np.delete(columns, j, axis=1)
         apart, rows = away_from(others), clear_of(held)
-        pick = np.flatnonzero(apart)[_best_candidate(held[rows], images[np.ix_(apart, rows)], y[rows], ambient)]
+        pick = np.flatnonzero(apart)[_best_candidate(held[rows], _block(images, apart, rows), y[rows], ambient)]
         trial, trial_columns = list(chosen), columns.copy()
         trial[j], trial_columns[:, j] = grid[pick], images[pick]
         trial, trial_columns, trial_rss, scored = refine_all(trial, trial_columns, scored, lights=[j])
