@@ -467,16 +467,17 @@ def test_two_lamps_keep_their_shares_of_the_light():
 def test_a_faint_second_shadow_is_not_lost_to_the_first_shadows_misfit():
     """A near lamp (0.43 m) and a far one (0.97 m, a fifth of the light at the pencil) over the pencil,
     which stands 3 mm from its modelled place (an Embree photo, 16 footprint samples per pixel, gamma
-    2.17, searched against its smooth shading at 80x60): the strong shadow's misfit (its modelled
+    2.17, searched against its smooth shading at 160x120): the strong shadow's misfit (its modelled
     edge a pixel off) outweighs the faint shadow, and the plain search puts both lights on the strong
-    one (each found light 13-16 degrees from the far lamp). Leaving out a clearance's width about each
-    placed shadow's edge (`edge`, from `fit_lights`' clearance: 1 pixel here) finds both lamps,
-    within 4 degrees of their directions. Measured: 3.3 and 2.3 degrees."""
+    one (each found light 13-15 degrees from the far lamp). Leaving out a clearance's width about each
+    placed shadow's edge (`edge`, from `fit_lights`' clearance: 2 pixels here) finds both lamps,
+    within 4 degrees of their directions. Measured: 2.9 and 1.9 degrees. At 80x60 the clearance is
+    under a pixel and the rule is off."""
     from hiddenjax.shadows._fit import _shadow_edge
 
-    scene, camera = desk(size=(80, 60))
+    scene, camera = desk(size=(160, 120))
     scene = hj.Scene(list(scene)[:2])  # the pencil alone
-    moved, _ = desk((0.0029, 0.0, 0.0007), size=(80, 60))
+    moved, _ = desk((0.0029, 0.0, 0.0007), size=(160, 120))
     lamps = np.array([[-0.043, 0.324, -0.315], [0.096, 0.709, -0.7]])
     photo = hj.render_point_lights(hj.Scene(list(moved)[:2]), camera, lamps, [1.0, 1.0], pixel_samples=16, seed=3)
     photo = np.clip(photo / np.percentile(photo, 99.5), 0, 1) ** (1 / 2.17)
@@ -486,7 +487,8 @@ def test_a_faint_second_shadow_is_not_lost_to_the_first_shadows_misfit():
     true = (lamps - anchor) / np.linalg.norm(lamps - anchor, axis=1)[:, None]
     box = np.array([[-1.1, 0.1, -1.1], [1.1, 1.1, 1.1]])
     edge = _shadow_edge(scene, camera, 0.005)
-    assert edge == 1 and _shadow_edge(scene, camera, None) == 0
+    assert edge == 2 and _shadow_edge(scene, camera, None) == 0
+    assert _shadow_edge(scene, camera.resized(80, 60), 0.005) == 0
     angles = {}
     for e in (0, edge):
         found = sh.search_lights(photo, scene, camera, 2, box=box, shadows=shadows, reference=shading, edge=e)

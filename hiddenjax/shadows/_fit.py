@@ -142,12 +142,12 @@ def fit_lights(
     - `clearance`: metres; leave out the pixels within this distance of the occluders' modelled
       silhouette (`object_clearance`): a real object a few millimetres from where the scene puts
       it must not pass for shadow; half of it is the objects' placement uncertainty in
-      `covariance`. With two or more lights the search leaves out that width in pixels about each
-      placed light's modelled shadow edge while placing the others (`search_lights`' `edge`): the
-      misfit the objects' error leaves along a strong shadow must not draw a second light. With a
-      prepared `shadows`, build it with the mask `object_clearance(...)` (the clearance then only
-      widens the covariance and sets the search's `edge`). Default none (a rendered photo's object
-      is where the scene says).
+      `covariance`. With two or more lights the search leaves out that width in pixels (where it
+      spans at least one) about each placed light's modelled shadow edge while placing the others
+      (`search_lights`' `edge`): the misfit the objects' error leaves along a strong shadow must
+      not draw a second light. With a prepared `shadows`, build it with the mask
+      `object_clearance(...)` (the clearance then only widens the covariance and sets the search's
+      `edge`). Default none (a rendered photo's object is where the scene says).
     - `shading`: `"smooth"` fits the photo's ratio to its own smooth brightness field
       (`smooth_shading`: vignetting, a tone curve's slope, a falloff the scene does not know) as if
       it were the reference photo, which places each light's direction; then `fit_falloff` places
@@ -250,12 +250,16 @@ def fit_lights(
 
 def _shadow_edge(scene: Scene, camera: Camera, clearance) -> int:
     """Pixels: the `clearance` at the occluders' depth, rounded up; how far a shadow's modelled edge may
-    lie from the photo's (`search_lights`' `edge`)."""
+    lie from the photo's (`search_lights`' `edge`). 0 where the clearance is under a pixel: the
+    objects' error is then within the pixel-centre model's own, and a band of a whole pixel about
+    a shadow one or two pixels wide covers most of a second shadow near it (on 12 random two-lamp
+    desks at 80x60 it left both lamps within 3 degrees on 4 instead of 6)."""
     if not clearance:
         return 0
     depth = float((occluder_centre(scene) - np.asarray(camera.origin, np.float64)) @ np.asarray(camera.rotation, np.float64)[2])
     focal = float(np.max(np.asarray(camera.intrinsics)[:2]))
-    return int(np.ceil(clearance * focal / max(depth, 1e-9)))
+    pixels = clearance * focal / max(depth, 1e-9)
+    return int(np.ceil(pixels)) if pixels >= 1 else 0
 
 
 def _with_placement(covariance, positions, scene: Scene, clearance):
