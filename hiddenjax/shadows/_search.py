@@ -255,6 +255,22 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
     images = _unit_images(caster, shadows, grid, shade=shade)
     scored = len(grid)
 
+    pixels, shape = np.asarray(shadows.pixels), shadows.image_shape
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
+
+    def clear_of(held):
+        """`(P,)` bool: the rows farther than `edge` pixels from every held light's modelled shadow
+        edge (its columns `held (P, K)`: the unit image is zero in the shadow)."""
+        keep = np.ones(len(y), bool)
+        if edge == 0:
+            return keep
+        for column in held.T:
+            lit, dark = np.zeros(shape[0] * shape[1], np.uint8), np.zeros(shape[0] * shape[1], np.uint8)
+            lit[pixels], dark[pixels] = column > 0, column <= 0
+            near = cv2.dilate(lit.reshape(shape), disc) & cv2.dilate(dark.reshape(shape), disc)
+            keep &= near.reshape(-1)[pixels] == 0
+        return keep if keep.sum() > held.shape[1] + 2 else np.ones(len(y), bool)
+
     def refine_all(chosen, columns, scored, lights=None):
         """Pattern search around every light (or those listed) in turn, the others held: 3x3x3 grids,
         halving the step."""
@@ -270,8 +286,9 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
                 local = local[~_inside_occluders(scene, local)]
                 local_images = _unit_images(caster, shadows, local, shade=shade)
                 scored += len(local)
-                rows = clear_of(np.delete(columns, j, axis=1))
-                best = _best_candidate(np.delete(columns, j, axis=1)[rows], local_images[:, rows], y[rows], ambient)
+                held = np.delete(columns, j, axis=1)
+                rows = clear_of(held)
+                best = _best_candidate(held[rows], local_images[:, rows], y[rows], ambient)
                 chosen[j] = local[best]
                 columns[:, j] = local_images[best]
             spacing = spacing / 2
@@ -289,22 +306,6 @@ def search_lights(image, scene: Scene, camera: Camera, count: int = 1, *, box=No
         grid too coarse to leave any, every candidate."""
         apart = np.all([np.max(np.abs(grid - c) / spacing, axis=1) > 1.5 for c in placed], axis=0)
         return apart if apart.any() else np.ones(len(grid), bool)
-
-    pixels, shape = np.asarray(shadows.pixels), shadows.image_shape
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
-
-    def clear_of(held):
-        """`(P,)` bool: the rows farther than `edge` pixels from every held light's modelled shadow
-        edge (its columns `held (P, K)`: the unit image is zero in the shadow)."""
-        keep = np.ones(len(y), bool)
-        if edge == 0:
-            return keep
-        for column in held.T:
-            lit, dark = np.zeros(shape[0] * shape[1], np.uint8), np.zeros(shape[0] * shape[1], np.uint8)
-            lit[pixels], dark[pixels] = column > 0, column <= 0
-            near = cv2.dilate(lit.reshape(shape), disc) & cv2.dilate(dark.reshape(shape), disc)
-            keep &= near.reshape(-1)[pixels] == 0
-        return keep if keep.sum() > held.shape[1] + 2 else np.ones(len(y), bool)
 
     first = _single_losses(images, y, ambient)
     for start in np.argsort(first)[:starts]:  # the best coarse candidates each start a greedy pass
