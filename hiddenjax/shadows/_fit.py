@@ -20,9 +20,10 @@ from ..scene import Camera, Scene
 from ._polish import polish_lights
 from ._photometric import CAMERA_TONE, TONE_POWER, FalloffFit, _checked_tone, fit_falloff
 from ._receiver import object_clearance, smooth_shading
-from ._search import _occluder_bounds, check_outside, hard_fit, occluder_centre, search_lights
+from ._search import _fit, _occluder_bounds, _unit_images, check_outside, hard_fit, occluder_centre, search_lights
 from ._shading import ShadowScene, light_images
 from .._jit import host_array, jit
+from ..transport._embree import RayCaster
 
 # Culling tolerance while fitting: a skipped triangle darkens a pixel by less than 1e-6.
 FIT_TOLERANCE = 1e-6
@@ -150,7 +151,10 @@ def fit_lights(
       `edge`). Default none (a rendered photo's object is where the scene says).
     - `shading`: `"smooth"` fits the photo's ratio to its own smooth brightness field
       (`smooth_shading`: vignetting, a tone curve's slope, a falloff the scene does not know) as if
-      it were the reference photo, which places each light's direction; then `fit_falloff` places
+      it were the reference photo, which places each light's direction (with two or more lights the
+      field is fitted again with the searched shadows divided out, `smooth_shading(shadowed=)`, and
+      the search run again on it: fitted to the lit pixels alone, the field is extrapolated under
+      large shadows, and the search would move a faint lamp to explain that misfit); then `fit_falloff` places
       the lights in the photo's brightness (the lamp's falloff through a fitted tone curve and
       vignetting) with those directions as a prior (and each lamp's share of the light at the
       objects as the shadows' depths read it, `intensities`), its covariance widened by refits with the
@@ -192,6 +196,9 @@ def fit_lights(
             box, count = np.stack([guess.min(axis=0) - reach, guess.max(axis=0) + reach]), len(guess)
         searched = search_lights(image, scene, camera, count, box=box, ambient=ambient, shadows=shadows,
                                  reference=reference, edge=_shadow_edge(scene, camera, clearance))
+        if shading == "smooth" and len(searched.positions) > 1:
+            reference, searched = _search_reshaded(image, scene, camera, shadows, searched, ambient,
+                                                   _shadow_edge(scene, camera, clearance))
         init = searched.positions
         temperature = (1000.0, 3000.0) if temperature is None else temperature
     temperature = (100.0, 1000.0) if temperature is None else temperature
@@ -260,6 +267,31 @@ def _shadow_edge(scene: Scene, camera: Camera, clearance) -> int:
     focal = float(np.max(np.asarray(camera.intrinsics)[:2]))
     pixels = clearance * focal / max(depth, 1e-9)
     return int(np.ceil(pixels)) if pixels >= 1 else 0
+
+
+def _search_reshaded(image, scene: Scene, camera: Camera, shadows: ShadowScene, searched, ambient: bool, edge: int):
+    """`(reference, search)`: the smooth field refitted with the searched shadows divided out, and the
+    search run again on it, kept where it explains the photo's ratio to that field better.
+
+    `smooth_shading` fits the field to the photo's lit pixels only and extrapolates it over the
+    shadows; where two lights' shadows cover a large part of the photo, that extrapolation leaves a
+    smooth misfit the size of a faint shadow, which the search explains by moving the light that
+    casts it. Divided by the search's modelled ratio, `sum_l I_l V_l + a` (`search_lights` with a
+    reference), the photo gives the field over the shadowed pixels too (`smooth_shading(shadowed=)`).
+    """
+    H, W = np.shape(image)[:2]
+    pixels = np.asarray(shadows.pixels)
+    visibility = _unit_images(RayCaster(scene), shadows, searched.positions, shade=False)
+    modelled = np.ones(H * W)
+    modelled[pixels] = searched.intensities @ visibility + searched.ambient
+    reference = smooth_shading(image, pixels, shadowed=modelled.reshape(H, W))
+    again = search_lights(image, scene, camera, len(searched.positions), box=searched.box, ambient=ambient,
+                          shadows=shadows, reference=reference, edge=edge)
+    y = np.asarray(shadows.image_to_rows(image), np.float64) / np.asarray(shadows.image_to_rows(reference), np.float64)
+    intensities, a, rss = _fit(visibility.T, y, ambient)
+    if rss / float(y @ y) < again.loss:
+        again = searched._replace(intensities=intensities, ambient=a, loss=rss / float(y @ y))
+    return reference, again
 
 
 def _with_placement(covariance, positions, scene: Scene, clearance):

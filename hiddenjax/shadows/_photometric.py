@@ -75,9 +75,10 @@ where it falls) within a factor 2 (`SHARE_SIGMA`, one standard deviation). The f
 hold no shadow, so without it nothing ties a lamp to the shadow that found it: on a two-lamp desk
 the fit switched the second lamp off (its ratio to `e^-1197`) and explained the brightness with the
 first, the tone curve and vignetting; with it both lamps came within 1 degree. `s_i` and `kappa` are taken again from
-each fit's residual until they settle (at most `NOISE_ROUNDS` fits). The prior is then checked against the photo:
-one Gauss-Newton step from the joint answer without it (the tone curve's prior kept) gives the falloff's own direction
-`u_f` (covariance `C_f`), and where `g = u_f - u0` is farther than `g^T (C_f + C_0)^-1 g = 2`
+each fit's residual until they settle (at most `NOISE_ROUNDS` fits). Each light's prior is then checked against the photo:
+one Gauss-Newton step from the joint answer without that light's prior (the tone curve's prior and the other lights'
+kept, at the widths their own checks give, repeated until those settle: at most `PRIOR_CHECKS` rounds) gives the
+falloff's own direction `u_f` (covariance `C_f`), and where `g = u_f - u0` is farther than `g^T (C_f + C_0)^-1 g = 2`
 (the 2-degree-of-freedom chi-square at its mean) the shadow's covariance `C_0` is scaled by the
 `s0^2 > 1` that brings it there (the objects stand farther from their modelled places than the
 clearance says; the falloff does not depend on where they stand) and the fit is repeated.
@@ -124,6 +125,7 @@ VIGNETTING_TERMS = 3  # k1 r^2 + k2 r^4 + k3 r^6: two terms leave 2% at a corner
 BOUNCE_RAYS = 256  # stratified cosine-distributed rays per pixel for the objects' bounce light (module docstring)
 RESAMPLES = 6  # refits with the bounce light drawn again, whose spread joins the covariance
 SHARE_SIGMA = float(np.log(2.0))  # the shadows' read of each light's share at the objects: within a factor 2 (1 sd)
+PRIOR_CHECKS = 4  # at most this many rounds of the shadow priors' checks, each light's against the others' widths
 BOUNCE_SHARE = 2e-3  # a pixel whose objects' bounce light is more than this share of a light's direct light is left out
 BOUNCE_BLUR = 2.0  # pixels: the bounce light's Monte Carlo estimate is smoothed over this (a Gaussian sigma)
 NOISE_WIDTH = 8.0  # pixels: the photo's noise is measured over this (a Gaussian sigma of the squared residual)
@@ -510,21 +512,33 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
             weight = new
             found = solve(z, weight, b)
             z, residual = found.x, photo_rows(found.x, b)
-        # The falloff alone, one Gauss-Newton step from the joint answer without the prior (at the optimum
-        # the photo's gradient is minus the prior's, -J_p^T f_p). Where its direction and the shadow's
-        # disagree by more than their covariances allow, the shadow's is widened until they agree (the
-        # objects stand farther from their modelled places than the clearance says), and the fit repeated.
+        # Each light's prior checked against the falloff's own direction: one Gauss-Newton step from the
+        # joint answer with that light's prior rows dropped and the other lights' at their checked widths
+        # (row weights c_i: z = x + (J^T C J)^-1 J^T (I - C) f, as J^T f = 0 at the optimum). Where the
+        # two directions disagree by more than their covariances allow, the shadow's is widened until they
+        # agree (the objects stand farther from their modelled places than the clearance says), the
+        # checks are repeated with those widths until they settle, and the fit is repeated.
         J, f = found.jac, found.fun
-        alone = np.linalg.pinv(J[:M].T @ J[:M], hermitian=True)
-        z_alone = found.x + alone @ (J[M:].T @ f[M:])
         scales = np.ones(L)
-        for l, (E, variances) in enumerate(priors):  # in the plane across the shadow's direction
-            v = z_alone[Q + 3 * l: Q + 3 * l + 3] - b.anchor
-            u = v / max(np.linalg.norm(v), 1e-300)
-            across = (np.eye(3) - np.outer(u, u)) / max(np.linalg.norm(v), 1e-300)
-            C = E @ across @ alone[Q + 3 * l: Q + 3 * l + 3, Q + 3 * l: Q + 3 * l + 3] @ across.T @ E.T
-            scales[l] = _prior_scale(E @ (u - directions[l]), C, np.diag(variances))
-            priors[l] = E, variances * scales[l]
+        for _ in range(PRIOR_CHECKS):
+            widths = np.ones(len(f))
+            widths[M: M + 2 * L] = np.repeat(1.0 / scales, 2)  # the priors' rows, two per light
+            checked = np.ones(L)
+            for l, (E, variances) in enumerate(shadow_priors):  # in the plane across the shadow's direction
+                c = widths.copy()
+                c[M + 2 * l: M + 2 * l + 2] = 0.0
+                alone = np.linalg.pinv(J.T @ (c[:, None] * J), hermitian=True)
+                z_alone = found.x + alone @ (J.T @ ((1.0 - c) * f))
+                v = z_alone[Q + 3 * l: Q + 3 * l + 3] - b.anchor
+                u = v / max(np.linalg.norm(v), 1e-300)
+                across = (np.eye(3) - np.outer(u, u)) / max(np.linalg.norm(v), 1e-300)
+                C = E @ across @ alone[Q + 3 * l: Q + 3 * l + 3, Q + 3 * l: Q + 3 * l + 3] @ across.T @ E.T
+                checked[l] = _prior_scale(E @ (u - directions[l]), C, np.diag(variances))
+            settled = np.allclose(checked, scales, rtol=1e-3)
+            scales = checked
+            if settled:
+                break
+        priors[:] = [(E, variances * s) for (E, variances), s in zip(shadow_priors, scales)]
         if np.any(scales > 1):
             found = solve(found.x, weight, b)
         return found, weight, local, kappa, scales

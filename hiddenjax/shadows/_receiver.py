@@ -58,12 +58,25 @@ def object_clearance(scene: Scene, camera: Camera, margin: float = OBJECT_MARGIN
 
 
 def smooth_shading(image, pixels, *, degree: int = SHADING_DEGREE, trim: float = SHADING_TRIM,
-                   passes: int = 4) -> np.ndarray:
+                   passes: int = 4, shadowed=None) -> np.ndarray:
     """The photo's smooth brightness field `(H, W)` (or `(H, W, C)` per channel), fitted on the flat
-    pixel indices `pixels` (module docstring): a reference photo for `fit_lights(reference=)`."""
+    pixel indices `pixels` (module docstring): a reference photo for `fit_lights(reference=)`.
+
+    `shadowed (H, W)`: a model of the photo's ratio to its unshadowed self (the shadows, e.g. a
+    light search's `sum_l I_l V_l + a`); the field is then fitted to `image / shadowed`, over the
+    shadowed pixels as well as the lit ones. Without it the field is fitted to the lit pixels and
+    extrapolated over the shadows, which leaves a smooth misfit where shadows cover much of the
+    photo, towards its border. Pixels where `shadowed` is not positive are left out."""
     image = np.asarray(image, np.float64)
     if image.ndim not in (2, 3):
         raise ValueError(f"expected a photo (H, W) or (H, W, C), got shape {image.shape}")
+    if shadowed is not None:
+        shadowed = np.asarray(shadowed, np.float64)
+        if shadowed.shape != image.shape[:2] or not np.all(np.isfinite(shadowed)):
+            raise ValueError(f"shadowed must be a finite (H, W) model of the photo's shadows, {image.shape[:2]}, "
+                             f"got shape {shadowed.shape}")
+        ratio = np.where(shadowed > 0, shadowed, np.inf)  # (not positive: a black pixel, left out below)
+        image = image / (ratio if image.ndim == 2 else ratio[..., None])
     if not isinstance(degree, (int, np.integer)) or degree < 0:
         raise ValueError(f"degree must be an integer >= 0, got {degree!r}")
     H, W = image.shape[:2]
