@@ -8,16 +8,20 @@ reference photo, no mask: `hiddenjax lights scene.toml photo.png --within 1.0 -o
 leaves out the objects' outline grown by 5 mm, fits the photo's ratio to its own smooth
 shading (the direction), then places the lamp in the photo's brightness (its falloff across the
 desk, with the tone curve and vignetting fitted, the shadow's direction as a prior), and reports
-each light's 95% cone and distance interval.
+each light's 95% cone and distance interval. `--lamps 2` adds a far second lamp low at the
+side (0.77 m from the objects, about 40 degrees up) and a larger cup: the two lamps' shadows cover most
+of the photo's lower half, and `--count 2` fits both (the smooth shading is fitted again under the
+found shadows and the search run again on it).
 
 Writes `photo.png`, `scene.toml`, `lights.json`, `fit.png` (photo, fitted image, difference) and
-`desk_lamp.png` (the desk from above and from the side: the objects, the true lamp, the found one
-with its 95% cone and interval), and `results.json`.
+`desk_lamp.png` (the desk from above and from the side: the objects, the true lamps, the found
+ones with their 95% cones and intervals), and `results.json`.
 
-    python examples/desk_lamp.py [--quick] [--out DIR]
+    python examples/desk_lamp.py [--quick] [--lamps 1|2] [--out DIR]
 """
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 
@@ -31,33 +35,36 @@ import hiddenjax as hj  # noqa: E402
 from hiddenjax.cli import main as cli  # noqa: E402
 
 LAMP = np.array([0.25, 0.45, -0.3])  # metres: 0.6 m from the pencil, 50 degrees up, behind it
+SECOND_LAMP = np.array([0.649, 0.524, -0.14])  # `--lamps 2`: 0.77 m from the objects, low at the side
 OFFSET = np.array([0.003, 0.0, 0.0])  # where the scene file misplaces the objects
-OBJECTS = [("cylinder", dict(radius=0.004, height=0.076), np.array([0.0, 0.0, 0.0])),   # a pencil
-           ("cylinder", dict(radius=0.03, height=0.08), np.array([0.08, 0.0, 0.05]))]  # a cup
+PENCIL = ("cylinder", dict(radius=0.004, height=0.076), np.array([0.0, 0.0, 0.0]))
+CUPS = {1: ("cylinder", dict(radius=0.03, height=0.08), np.array([0.08, 0.0, 0.05])),
+        2: ("cylinder", dict(radius=0.04, height=0.09), np.array([0.1, 0.0, 0.06]))}  # a larger cup beside two lamps
 CAMERA = dict(origin=[0.0, 0.32, 0.30], target=[0.0, 0.0, -0.02], fov=60.0)
 
 
-def scene_toml(width: int, height: int) -> str:
-    """The scene file a user would write: the desk and the objects as primitives, 3 mm off."""
+def scene_toml(width: int, height: int, objects) -> str:
+    """The scene file a user would write: the desk and the `objects` as primitives, 3 mm off."""
     text = (f"[camera]\nwidth = {width}\nheight = {height}\norigin = {CAMERA['origin']}\n"
             f"target = {CAMERA['target']}\nfov = {CAMERA['fov']}\n\n"
             '[[surface]]\nshape = "plane"\nextent = [0.9, 0.7]\nalbedo = 0.6\n')
-    for shape, sizes, place in OBJECTS:
+    for shape, sizes, place in objects:
         keys = "".join(f"{k} = {v}\n" for k, v in sizes.items())
         text += (f'\n[[surface]]\nshape = "{shape}"\n{keys}observe = false\nalbedo = 0.5\n'
                  f"[surface.transform]\ntranslation = {(place + OFFSET).round(4).tolist()}\n")
     return text
 
 
-def photograph(width: int, height: int) -> np.ndarray:
-    """The faulty 8-bit photo (module docstring) of the true scene, `(height, width)` uint8."""
+def photograph(width: int, height: int, objects, lamps) -> np.ndarray:
+    """The faulty 8-bit photo (module docstring) of the true scene under `lamps (L, 3)` of equal
+    intensity, `(height, width)` uint8."""
     surfaces = [hj.Surface(hj.scene.primitive("plane", extent=(0.9, 0.7)), 0.6)]
-    for shape, sizes, place in OBJECTS:
+    for shape, sizes, place in objects:
         mesh = hj.scene.primitive(shape, **sizes)
         mesh.apply_translation(place)
         surfaces.append(hj.Surface(mesh, 0.5, observe=False))
     camera = hj.Camera.look_at(CAMERA["origin"], CAMERA["target"], [0, 1, 0], CAMERA["fov"], width, height)
-    radiance = hj.render_point_lights(hj.Scene(surfaces), camera, LAMP[None], [0.05], pixel_samples=9,
+    radiance = hj.render_point_lights(hj.Scene(surfaces), camera, lamps, [0.05] * len(lamps), pixel_samples=9,
                                       bounces=2)
     radiance = radiance + 0.05 * radiance.mean()
     rows, cols = np.mgrid[:height, :width] + 0.5
@@ -66,35 +73,38 @@ def photograph(width: int, height: int) -> np.ndarray:
     return np.round(255 * encoded).astype(np.uint8)
 
 
-def picture(path, found):
-    """The desk from above (x, z) and from the side (horizontal distance, height)."""
-    light = found["lights"][0]
-    anchor, direction = np.array(light["from_point"]), np.array(light["direction"])
+def picture(path, found, lamps, objects, order):
+    """The desk from above (x, z) and from the side (horizontal distance, height): each found light
+    (`order[k]`: the one matched to `lamps[k]`) with its 95% cone and interval, and the true lamps."""
     fig, axes = plt.subplots(1, 2, figsize=(9, 4))
-    near, far = light["distance_95"]
+    anchor = np.array(found["lights"][0]["from_point"])
     for ax, (i, j, label) in zip(axes, ((0, 2, "z (m)"), (None, 1, "height (m)"))):
         def coords(p):
             p = np.asarray(p) - anchor if i is None else np.asarray(p)
             return (np.hypot(p[..., 0], p[..., 2]) if i is None else p[..., i]), p[..., j] + (anchor[1] if i is None else 0)
 
-        ray = anchor + np.linspace(near, far, 2)[:, None] * direction
-        ax.plot(*coords(ray), color="tab:orange", lw=6, alpha=0.4, label="95% distance interval")
-        half = np.radians(light["angle_95"])
-        for sign in (-1, 1):  # the cone's edges in this view's plane
-            side = np.cross(direction, [0, 1, 0] if i is not None else [direction[2], 0, -direction[0]])
-            side = side / max(np.linalg.norm(side), 1e-12)
-            edge = np.cos(half) * direction + sign * np.sin(half) * side
-            ax.plot(*coords(np.stack([anchor, anchor + far * edge])), color="tab:orange", lw=0.8)
-        ax.plot(*coords(np.array(found["positions"][0])), "o", color="tab:orange", label="found")
-        ax.plot(*coords(LAMP), "*", color="k", ms=12, label="true lamp")
-        for _, sizes, place in OBJECTS:
+        for k, (lamp, colour) in enumerate(zip(lamps, ("tab:orange", "tab:green"))):
+            light = found["lights"][order[k]]
+            direction = np.array(light["direction"])
+            near, far = light["distance_95"]
+            ray = anchor + np.linspace(near, far, 2)[:, None] * direction
+            ax.plot(*coords(ray), color=colour, lw=6, alpha=0.4, label="95% distance interval" if k == 0 else None)
+            half = np.radians(light["angle_95"])
+            for sign in (-1, 1):  # the cone's edges in this view's plane
+                side = np.cross(direction, [0, 1, 0] if i is not None else [direction[2], 0, -direction[0]])
+                side = side / max(np.linalg.norm(side), 1e-12)
+                edge = np.cos(half) * direction + sign * np.sin(half) * side
+                ax.plot(*coords(np.stack([anchor, anchor + far * edge])), color=colour, lw=0.8)
+            ax.plot(*coords(np.array(found["positions"][order[k]])), "o", color=colour, label="found" if k == 0 else None)
+            ax.plot(*coords(lamp), "*", color="k", ms=12, label="true lamp" if k == 0 else None)
+        for _, sizes, place in objects:
             ax.plot(*coords(place + np.array([0, sizes["height"], 0])), "s", color="tab:blue", ms=4)
         ax.set_xlabel("x (m)" if i is not None else "horizontal distance from the objects (m)")
         ax.set_ylabel(label)
         ax.set_aspect("equal")
         ax.grid(alpha=0.3)
     axes[0].set_title("from above")
-    axes[1].set_title("from the side, along the light")
+    axes[1].set_title("from the side, along each light")
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -104,29 +114,37 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/desk_lamp"))
     parser.add_argument("--quick", action="store_true", help="a 64 x 48 fit instead of 160 x 120")
+    parser.add_argument("--lamps", type=int, choices=(1, 2), default=1, help="one lamp (default) or two")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     width, height = (64, 48) if args.quick else (160, 120)
-    hj.io.write_png(args.out / "photo.png", photograph(2 * width, 2 * height))
-    (args.out / "scene.toml").write_text(scene_toml(width, height))
+    lamps = np.stack([LAMP, SECOND_LAMP][:args.lamps])
+    objects = [PENCIL, CUPS[args.lamps]]
+    hj.io.write_png(args.out / "photo.png", photograph(2 * width, 2 * height, objects, lamps))
+    (args.out / "scene.toml").write_text(scene_toml(width, height, objects))
     status = cli(["lights", str(args.out / "scene.toml"), str(args.out / "photo.png"), "--within", "1.0",
-                  "-o", str(args.out / "lights.json"), "--png", str(args.out / "fit.png")])
+                  "--count", str(args.lamps), "-o", str(args.out / "lights.json"), "--png", str(args.out / "fit.png")])
     if status:
         raise SystemExit(status)
     found = json.loads((args.out / "lights.json").read_text())
-    light = found["lights"][0]
-    true = LAMP - np.array(light["from_point"])
-    angle = float(np.degrees(np.arccos(np.clip(np.dot(light["direction"], true) / np.linalg.norm(true), -1, 1))))
-    results = dict(true=LAMP.tolist(), found=found["positions"][0], direction_error_deg=angle,
-                   distance=light["distance"], true_distance=float(np.linalg.norm(true)),
-                   angle_95=light["angle_95"], distance_95=light["distance_95"],
-                   position_error_m=float(np.linalg.norm(np.array(found["positions"][0]) - LAMP)),
-                   seconds=found["seconds"])
-    picture(args.out / "desk_lamp.png", found)
+    positions = np.array(found["positions"])
+    order = min(itertools.permutations(range(len(lamps))),  # the found light matched to each true lamp
+                key=lambda p: np.sum(np.linalg.norm(positions[list(p)] - lamps, axis=1)))
+    results = dict(seconds=found["seconds"], lamps=[])
+    for lamp, k in zip(lamps, order):
+        light = found["lights"][k]
+        true = lamp - np.array(light["from_point"])
+        angle = float(np.degrees(np.arccos(np.clip(np.dot(light["direction"], true) / np.linalg.norm(true), -1, 1))))
+        results["lamps"].append(dict(true=lamp.tolist(), found=positions[k].tolist(), direction_error_deg=angle,
+                                     distance=light["distance"], true_distance=float(np.linalg.norm(true)),
+                                     angle_95=light["angle_95"], distance_95=light["distance_95"],
+                                     position_error_m=float(np.linalg.norm(positions[k] - lamp))))
+        print(f"direction {angle:.2f} deg off (95% cone {light['angle_95']:.1f}); distance {light['distance']:.3f} m "
+              f"against {np.linalg.norm(true):.3f} (95%: {light['distance_95'][0]:.3f}-{light['distance_95'][1]:.3f}); "
+              f"position {100 * results['lamps'][-1]['position_error_m']:.1f} cm off")
+    picture(args.out / "desk_lamp.png", found, lamps, objects, order)
     (args.out / "results.json").write_text(json.dumps(results, indent=2))
-    print(f"direction {angle:.2f} deg off (95% cone {light['angle_95']:.1f}); distance {light['distance']:.3f} m "
-          f"against {results['true_distance']:.3f} (95%: {light['distance_95'][0]:.3f}-{light['distance_95'][1]:.3f}); "
-          f"position {100 * results['position_error_m']:.1f} cm off; wrote {args.out}")
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
