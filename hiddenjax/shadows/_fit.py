@@ -20,7 +20,8 @@ from ..scene import Camera, Scene
 from ._polish import polish_lights
 from ._photometric import CAMERA_TONE, TONE_POWER, FalloffFit, _checked_tone, fit_falloff
 from ._receiver import object_clearance, smooth_shading
-from ._search import _fit, _occluder_bounds, _unit_images, check_outside, hard_fit, occluder_centre, search_lights
+from ._search import (_fit, _occluder_bounds, _unit_images, check_outside, hard_fit, occluder_centre,
+                      positive_reference, search_lights)
 from ._shading import ShadowScene, light_images
 from .._jit import host_array, jit
 from ..transport._embree import RayCaster
@@ -194,11 +195,11 @@ def fit_lights(
             if not (np.isfinite(reach) and reach > 0):
                 raise ValueError(f"reach must be a positive distance in metres, got {reach}")
             box, count = np.stack([guess.min(axis=0) - reach, guess.max(axis=0) + reach]), len(guess)
+        edge = _shadow_edge(scene, camera, clearance)
         searched = search_lights(image, scene, camera, count, box=box, ambient=ambient, shadows=shadows,
-                                 reference=reference, edge=_shadow_edge(scene, camera, clearance))
+                                 reference=reference, edge=edge)
         if shading == "smooth" and len(searched.positions) > 1:
-            reference, searched = _search_reshaded(image, scene, camera, shadows, searched, ambient,
-                                                   _shadow_edge(scene, camera, clearance))
+            reference, searched = _search_reshaded(image, scene, camera, shadows, searched, ambient, edge)
         init = searched.positions
         temperature = (1000.0, 3000.0) if temperature is None else temperature
     temperature = (100.0, 1000.0) if temperature is None else temperature
@@ -287,10 +288,12 @@ def _search_reshaded(image, scene: Scene, camera: Camera, shadows: ShadowScene, 
     reference = smooth_shading(image, pixels, shadowed=modelled.reshape(H, W))
     again = search_lights(image, scene, camera, len(searched.positions), box=searched.box, ambient=ambient,
                           shadows=shadows, reference=reference, edge=edge)
-    y = np.asarray(shadows.image_to_rows(image), np.float64) / np.asarray(shadows.image_to_rows(reference), np.float64)
+    y = (np.asarray(shadows.image_to_rows(image), np.float64)  # the search's ratio under the new field
+         / positive_reference(np.asarray(shadows.image_to_rows(reference), np.float64)))
     intensities, a, rss = _fit(visibility.T, y, ambient)
-    if rss / float(y @ y) < again.loss:
-        again = searched._replace(intensities=intensities, ambient=a, loss=rss / float(y @ y))
+    loss = rss / float(y @ y)  # the first answer scored as the second search scores its own
+    if loss < again.loss:
+        again = searched._replace(intensities=intensities, ambient=a, loss=loss)
     return reference, again
 
 
