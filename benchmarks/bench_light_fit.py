@@ -153,9 +153,10 @@ PENCIL = ("cylinder", dict(radius=0.004, height=0.076), (0.0, 0.0, 0.0))
 CUP = ("cylinder", dict(radius=0.04, height=0.09), (0.1, 0.0, 0.06))
 
 
-def desk_scene(objects, offset=(0.0, 0.0, 0.0)):
-    """The desk and its objects (`(shape, sizes, place)`), each moved by `offset` metres."""
-    surfaces = [hj.Surface(hj.scene.primitive("plane", extent=DESK), 0.6)]
+def desk_scene(objects, offset=(0.0, 0.0, 0.0), table=0.6, roughness=None):
+    """The desk (albedo `table`, a constant or a texture; glossy with a `roughness`) and its objects
+    (`(shape, sizes, place)`), each moved by `offset` metres."""
+    surfaces = [hj.Surface(hj.scene.primitive("plane", extent=DESK), table, roughness=roughness)]
     for shape, sizes, place in objects:
         mesh = hj.scene.primitive(shape, **sizes)
         mesh.apply_translation(np.asarray(place) + np.asarray(offset))
@@ -163,13 +164,16 @@ def desk_scene(objects, offset=(0.0, 0.0, 0.0)):
     return hj.Scene(surfaces)
 
 
-def faulty_photo(photo, rng):
-    """Vignetting, a white point at the 99.5th percentile (clipped above) and an unknown gamma: `(photo, gamma)`."""
+def faulty_photo(photo, rng, plate=None):
+    """Vignetting, a white point at the 99.5th percentile (clipped above) and an unknown gamma: `(photo, gamma)`,
+    and with a `plate` (the same view without the objects) `(photo, gamma, plate)`, the plate taken with the
+    same camera (the same vignetting, exposure and tone curve)."""
     H, W = photo.shape[:2]
     rows, cols = np.mgrid[:H, :W] + 0.5
     r2 = ((rows - H / 2) ** 2 + (cols - W / 2) ** 2) / ((H / 2) ** 2 + (W / 2) ** 2)
-    gamma = rng.uniform(1.8, 2.4)
-    return np.clip(photo * (1 - 0.35 * r2) / np.percentile(photo, 99.5), 0, 1) ** (1 / gamma), gamma
+    gamma, white = rng.uniform(1.8, 2.4), np.percentile(photo, 99.5)
+    camera = lambda radiance: np.clip(radiance * (1 - 0.35 * r2) / white, 0, 1) ** (1 / gamma)
+    return (camera(photo), gamma) if plate is None else (camera(photo), gamma, camera(plate))
 
 
 def _falloff_signs(falloff, k: int) -> dict:
@@ -188,8 +192,20 @@ def _warned(notes, k: int) -> bool:
     return any(note.startswith((f"light {k} ", f"light {k}:")) or not note.startswith("light ") for note in notes)
 
 
-def _faulty(cases, render, table, rng):
-    """The faulty-photo study (module docstring): one row per light and fit."""
+def desk_table(name: str):
+    """`desk_scene`'s `(table, roughness)` for a table kind: `plain` (albedo 0.6), `wood` (matte grain,
+    `hj.scenes.wood_texture` with 2 cm stripes over the desk's 0.9 m, stretched to albedo 0.4-0.8,
+    median 0.6) or `satin` (albedo 0.6 under a GGX layer of roughness 0.25, index 1.5)."""
+    if name == "wood":
+        t = hj.scenes.wood_texture(DESK[0], 1024, grain=0.02, mean=0.5, seed=3)
+        lo, hi = np.percentile(t, [1, 99])
+        return np.clip(0.4 + 0.4 * (t - lo) / (hi - lo), 0.35, 0.85), None
+    return 0.6, (0.25 if name == "satin" else None)
+
+
+def _faulty(cases, render, table, rng, desk="plain", plate=False):
+    """The faulty-photo study (module docstring) on a `desk` table: one row per light and fit; with a
+    `plate`, a third fit from the photo and its clean plate (`fit_lights(shading="smooth", reference=)`)."""
     cam = hj.Camera.look_at([0.0, 0.32, 0.30], [0.0, 0.0, -0.02], [0, 1, 0], 60.0, 160, 120)
     box = np.array([[-1.1, 0.1, -1.1], [1.1, 1.1, 1.1]])
     rows = []
@@ -204,15 +220,21 @@ def _faulty(cases, render, table, rng):
             lights.append(anchor + distance * np.array([np.cos(elevation) * np.sin(azimuth), np.sin(elevation),
                                                         np.cos(elevation) * np.cos(azimuth)]))
         lights = np.array(lights)
-        photo, gamma = faulty_photo(render(desk_scene(objects), cam, lights), rng)
+        table_kind = desk_table(desk)
+        empty = render(desk_scene([], (0.0, 0.0, 0.0), *table_kind), cam, lights) if plate else None
+        photo, gamma, *taken = faulty_photo(render(desk_scene(objects, (0.0, 0.0, 0.0), *table_kind), cam, lights),
+                                            rng, empty)
         offset = rng.normal(size=3) * np.array([1.0, 0.0, 1.0])
         model = desk_scene(objects, 0.003 * offset / np.linalg.norm(offset))
-        for label, options in (("clearance + smooth shading", dict(clearance=0.005, shading="smooth")),
-                               ("plain", {})):
+        fits = [("clearance + smooth shading", photo, dict(clearance=0.005, shading="smooth")), ("plain", photo, {})]
+        if plate:
+            fits.append(("clearance + smooth shading + clean plate", photo,
+                         dict(clearance=0.005, shading="smooth", reference=taken[0])))
+        for label, image, options in fits:
             t = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                fit = hj.shadows.fit_lights(photo, model, cam, None, count=count, box=box, **options)
+                fit = hj.shadows.fit_lights(image, model, cam, None, count=count, box=box, **options)
             seconds = time.perf_counter() - t
             found = hj.shadows.light_uncertainty(fit, model)
             order = min(itertools.permutations(range(count)),
@@ -272,6 +294,12 @@ def main(argv=None):
                     help="single lights, several at once, both (the starts are the same either way), a "
                          "textured table with a reference photo, or faulty desk photos (not in all)")
     ap.add_argument("--cases", type=int, default=16, help="faulty desk photos (--part faulty; default 16)")
+    ap.add_argument("--table", choices=("plain", "wood", "satin"), default="plain",
+                    help="the faulty desks' table (--part faulty): matte plain (default), matte wood grain or "
+                         "glossy satin; the fit is told only the plain desk either way")
+    ap.add_argument("--plate", action="store_true",
+                    help="--part faulty: a third fit from each photo and its clean plate (the desk without the "
+                         "objects, the same camera): hiddenjax lights --reference")
     ap.add_argument("--seed", type=int, default=7,
                     help="the faulty photos' draws (--part faulty; default 7): another seed, other desks")
     args = ap.parse_args(argv)
@@ -285,8 +313,9 @@ def main(argv=None):
     table = Table()
     table.append(("fixture / light", "start", "error (cm)", "time (s), x Embree render"))
     if args.part == "faulty":
-        rows = _faulty(2 if args.quick else args.cases, render, table, np.random.default_rng(args.seed))
-        results = dict(photos=photos, seed=args.seed, faulty=rows, summary=_faulty_summary(rows))
+        rows = _faulty(2 if args.quick else args.cases, render, table, np.random.default_rng(args.seed), args.table,
+                       args.plate)
+        results = dict(photos=photos, seed=args.seed, table=args.table, faulty=rows, summary=_faulty_summary(rows))
         table.print_all()
         for label, summary in results["summary"].items():
             print(f"{label}: direction within 3 deg {summary['direction_within_3deg']:.0%} (median "
@@ -357,8 +386,10 @@ def main(argv=None):
 def _faulty_picture(path, rows):
     """Direction error against distance error per light, each fit its marker; the 95% cone as bars."""
     fig, ax = plt.subplots(figsize=(6, 3.8))
-    for label, marker in (("clearance + smooth shading", "o"), ("plain", "x")):
+    for label, marker in (("clearance + smooth shading", "o"), ("plain", "x"), ("clearance + smooth shading + clean plate", "s")):
         mine = [r for r in rows if r["fit"] == label]
+        if not mine:
+            continue
         ax.scatter([100 * r["distance_error_m"] for r in mine], [r["direction_error_deg"] for r in mine],
                    marker=marker, label=label)
     ax.axhline(3.0, color="k", ls="--", lw=0.8)

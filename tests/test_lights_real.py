@@ -148,6 +148,28 @@ def test_smooth_shading_with_the_shadows_divided_out_holds_where_shadows_cover_t
         sh.smooth_shading(photo, np.arange(H * W), shadowed=ratio[:-1])
 
 
+def test_a_clean_plate_divides_a_receivers_pattern_out_through_a_tone_curve():
+    """A photo `(rho E V)^(1/gamma)` and its plate `(rho E)^(1/gamma)`: the detextured photo is the
+    plate's smooth field times the shadows `V^(1/gamma)`, the pattern `rho` gone; a plate of another
+    shape, one with a negative or NaN pixel, or a black one is refused."""
+    rng = np.random.default_rng(1)
+    H, W = 40, 60
+    rows, cols = np.mgrid[:H, :W]
+    field = np.exp(-((cols - 20.0) ** 2 + (rows - 5.0) ** 2) / 2000.0)  # a lamp's falloff
+    rho = np.clip(0.6 + 0.2 * np.sin(cols / 1.5) + 0.05 * rng.standard_normal((H, W)), 0.2, 1.0)  # a grain
+    shadow = np.where((np.abs(cols - 35) < 3) & (rows > 15), 0.3, 1.0)
+    plate, photo = (rho * field) ** (1 / 2.2), (rho * field * shadow) ** (1 / 2.2)
+    pixels = np.arange(H * W)
+    out = sh.plate_detextured(photo, plate, pixels)
+    np.testing.assert_allclose(out, sh.smooth_shading(plate, pixels) * shadow ** (1 / 2.2), rtol=1e-12)
+    lit = shadow == 1  # the grain is gone: the lit pixels are the plate's smooth field
+    assert np.std(np.log(out[lit] / sh.smooth_shading(photo, pixels)[lit])) < 0.3 * np.std(np.log(photo[lit]))
+    for bad, words in ((plate[:, :-1], "has shape"), (np.where(rows == 3, -1.0, plate), "non-negative"),
+                       (np.where(rows == 3, np.nan, plate), "finite"), (0 * plate, "black over")):
+        with pytest.raises(ValueError, match=words):
+            sh.plate_detextured(photo, bad, pixels)
+
+
 def test_residual_correlation_is_one_for_white_noise_and_the_blur_area_for_smoothed_noise():
     """Closed form: white noise blurred by a Gaussian of standard deviation s has an autocorrelation
     whose integral over the lags is 4 pi s^2 pixels (window wide enough to hold it)."""
@@ -246,6 +268,10 @@ def test_the_tone_prior_is_the_penalized_minimum_and_reaches_both_limits():
     for bad in ((0.45, 0.0), (2.0, 0.1), (0.45, np.nan), "0.45", (0.45,)):
         with pytest.raises(ValueError, match="tone must be"):
             ph._checked_tone(bad)
+
+
+def _unit(v):
+    return v / np.linalg.norm(v)
 
 
 def _turned(direction, degrees):
@@ -458,6 +484,33 @@ def test_light_the_scene_lacks_is_warned_of(faulty_desk):
                            prior[None], resamples=0)
     assert found.misfit > sh._fit.CORRELATION_LIMIT, found.misfit
     assert any(note.startswith("the lamps' falloff leaves a residual correlated") for note in sh._fit._falloff_notes(found))
+
+
+def test_a_textured_receiver_is_told_from_a_cameras_noise(faulty_desk):
+    """The desk's photo with a wood-grain table (the fit told a plain one): the falloff's residual is
+    rough, and the fit names a textured receiver and the clean plate that takes it out; the plain
+    photo with a camera's noise (1% per pixel) is not taken for texture, nor is it without
+    (`test_the_falloff_places_the_lamp_...`)."""
+    scene, shadows, photo, _ = faulty_desk
+    _, camera = desk(size=(96, 72))
+    grain = hj.scenes.wood_texture(0.9, 1024, grain=0.02, mean=0.5, seed=3)
+    lo, hi = np.percentile(grain, [1, 99])
+    table = hj.Surface(scene[0].mesh, np.clip(0.4 + 0.4 * (grain - lo) / (hi - lo), 0.35, 0.85))
+    wood = hj.render_point_lights(hj.Scene([table, *list(scene)[1:]]), camera, LIGHT[None], [0.05], pixel_samples=9,
+                                  bounces=2, bounce_rays=64)
+    encoded = np.clip(wood * (1 - 0.3 * _radius2(72, 96)) / np.percentile(wood, 99.5), 0, 1) ** (1 / 2.2)
+    noisy = photo * np.exp(0.01 * np.random.default_rng(0).standard_normal(photo.shape))
+    anchor = sh._search.occluder_centre(scene)
+    prior = _direction_prior((LIGHT - anchor) / np.linalg.norm(LIGHT - anchor), 1.0, np.linalg.norm(LIGHT - anchor))
+    for image, textured in ((encoded, True), (noisy, False)):
+        found = sh.fit_falloff(image, scene, shadows, LIGHT[None], sh.smooth_shading(image, np.asarray(shadows.pixels)),
+                               prior[None], resamples=0)
+        told = [note for note in sh._fit._falloff_notes(found) if "textured receiver" in note]
+        assert bool(told) == textured, (found.noise, told)
+        assert all("reference=" in note and "clean plate" in note for note in told), told
+        if not textured:
+            assert found.noise > 0.005, found.noise  # the noise is seen, at its own size
+            assert np.degrees(np.arccos(np.clip(_unit(found.positions[0] - anchor) @ _unit(LIGHT - anchor), -1, 1))) < 1
 
 
 @pytest.fixture(scope="module")
@@ -737,6 +790,55 @@ def test_lights_on_a_faulty_8bit_photo_of_any_size(tmp_path, capsys):
                          (["--tone-power", "free", "--shading", "none"], "prior of --shading smooth")):
         assert main(["lights", str(tmp_path / "desk.toml"), str(tmp_path / "photo.png"), "-o", str(tmp_path / "x.json"),
                      *extra]) == 1
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and words in err and not (tmp_path / "x.json").exists(), err
+
+
+def test_a_clean_plate_takes_a_wood_grain_out(tmp_path, capsys):
+    """`hiddenjax lights` on an 8-bit photo of the desk on a wood-grain table (the scene file says a
+    plain one), vignetted and gamma-encoded: alone, the fit is told the receiver is textured; with a
+    clean plate taken by the same camera (`--reference`), the grain is divided out, the lamp's
+    direction comes within 2.5 degrees and its distance within 10%, and no texture is reported. A
+    plate of another view or a black one is refused."""
+    truth, camera = desk(size=(128, 96))
+    grain = hj.scenes.wood_texture(0.9, 1024, grain=0.02, mean=0.5, seed=3)
+    lo, hi = np.percentile(grain, [1, 99])
+    table = hj.Surface(truth[0].mesh, np.clip(0.4 + 0.4 * (grain - lo) / (hi - lo), 0.35, 0.85))
+    photo, plate = (hj.render_point_lights(hj.Scene(surfaces), camera, LIGHT[None], [0.05], pixel_samples=9, bounces=2)
+                    for surfaces in ([table, *list(truth)[1:]], [table]))
+    r2, white = _radius2(96, 128), np.percentile(photo, 99.5)
+    for name, image in (("photo", photo), ("plate", plate)):  # one camera: the same vignetting, exposure and curve
+        encoded = np.clip(image * (1 - 0.3 * r2) / white, 0, 1) ** (1 / 2.0)
+        hj.io.write_png(tmp_path / f"{name}.png", np.round(255 * encoded).astype(np.uint8))
+    (tmp_path / "desk.toml").write_text(
+        '[camera]\nwidth = 64\nheight = 48\norigin = [0.0, 0.32, 0.30]\ntarget = [0.0, 0.0, -0.02]\nfov = 60.0\n'
+        '[[surface]]\nshape = "plane"\nextent = [0.9, 0.7]\nalbedo = 0.6\n'
+        '[[surface]]\nshape = "cylinder"\nradius = 0.004\nheight = 0.076\nobserve = false\nalbedo = 0.5\n'
+        '[[surface]]\nshape = "cylinder"\nradius = 0.03\nheight = 0.08\nobserve = false\nalbedo = 0.5\n'
+        '[surface.transform]\ntranslation = [0.08, 0, 0.05]\n')
+    runs = {}
+    for label, extra in (("alone", []), ("plate", ["--reference", str(tmp_path / "plate.png")])):
+        out = tmp_path / f"{label}.json"
+        assert main(["lights", str(tmp_path / "desk.toml"), str(tmp_path / "photo.png"), "-o", str(out),
+                     "--within", "1.0", *extra]) == 0
+        found = runs[label] = json.loads(out.read_text())
+        light = found["lights"][0]
+        true = LIGHT - np.array(light["from_point"])
+        found["angle"] = np.degrees(np.arccos(np.clip(np.dot(light["direction"], true) / np.linalg.norm(true), -1, 1)))
+        found["distance_ratio"] = light["distance"] / np.linalg.norm(true)
+        found["textured"] = any("textured receiver" in w for w in found["warnings"])
+    capsys.readouterr()
+    assert runs["alone"]["textured"] and runs["alone"]["shading"] == "smooth", runs["alone"]
+    plated = runs["plate"]
+    assert plated["shading"] == "smooth" and not plated["textured"], plated
+    assert plated["angle"] < 2.5 and abs(plated["distance_ratio"] - 1) < 0.1, plated
+    assert not any("clean plate" in w for w in plated["warnings"]), plated  # (it was given)
+    hj.io.write_png(tmp_path / "black.png", np.zeros((96, 128), np.uint8))
+    for plate, words in (("square.png", "another aspect ratio"), ("black.png", "black over")):
+        if plate == "square.png":
+            hj.io.write_png(tmp_path / plate, np.zeros((64, 64), np.uint8))
+        assert main(["lights", str(tmp_path / "desk.toml"), str(tmp_path / "photo.png"), "-o", str(tmp_path / "x.json"),
+                     "--reference", str(tmp_path / plate)]) == 1
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and words in err and not (tmp_path / "x.json").exists(), err
 

@@ -33,7 +33,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--reach", type=float, default=0.3, help="search box half-size around --init, metres (default 0.3)")
     p.add_argument("--reference", help="a photo of the same view without the occluders (the surfaces with observe = "
                                        "false), for a table whose albedo is not the scene file's (a texture): the "
-                                       "fit uses the photo's ratio to it; " + IMAGE_HELP)
+                                       "fit uses the photo's ratio to it. For a camera's photo (--shading smooth) "
+                                       "it is a clean plate taken with the same camera, exposure and lamps, which "
+                                       "takes the table's grain or print out; " + IMAGE_HELP)
     p.add_argument("--no-polish", action="store_true", help="the search and the soft sigmoid fit only (faster, coarser)")
     p.add_argument("--width", type=int, help="fit at this many pixels across: the photo is area-averaged and the "
                                              "scene's camera rescaled to it (default: the scene file's camera width; "
@@ -42,7 +44,7 @@ def add_parsers(sub) -> None:
                    help="smooth: fit the photo's ratio to its own smooth brightness field (vignetting, the tone "
                         "curve, a falloff the scene does not know) for each light's direction, then each light's place "
                         "from the lamp's falloff with the tone curve and vignetting fitted; none: the photo as calibrated radiance. Default: "
-                        "smooth for 8/16-bit photos (a camera's), none for EXR/HDR and with --reference")
+                        "smooth for 8/16-bit photos (a camera's, with or without --reference), none for EXR/HDR")
     p.add_argument("--tone-power", nargs="+", metavar="MEAN SD | free",
                    help="with --shading smooth: a Gaussian prior on the photo's tone curve power (1/gamma), whose "
                         "distance trades with the lamps' along a flat valley; 'free' leaves it free within 0.25-1.5. "
@@ -102,12 +104,10 @@ def lights(args) -> dict:
     image = io.read_image(args.image, srgb=args.srgb)
     camera, image = _fit_size(spec.camera, image, args.width, args.image)
     calibrated = Path(args.image).suffix.lower() in io.HDR_SUFFIXES
-    shading = args.shading or ("none" if calibrated or args.reference is not None else "smooth")
+    shading = args.shading or ("none" if calibrated else "smooth")
     clearance = args.clearance if args.clearance is not None else (0.0 if calibrated else _shadows.OBJECT_MARGIN)
     if not (np.isfinite(clearance) and clearance >= 0):
         raise ValueError(f"--clearance must be a distance >= 0 in metres, got {clearance}")
-    if shading == "smooth" and args.reference is not None:
-        raise ValueError("--shading smooth stands in for a --reference photo; give one of them")
     if shading == "smooth" and args.no_polish:
         raise ValueError("--shading smooth needs the polish (it fits the photo's ratio to its shading); drop --no-polish")
     tone = _tone_prior(args.tone_power, args.srgb, shading)

@@ -34,6 +34,7 @@ from ._fit import fit_lights as fit_lights
 from ._fit import light_uncertainty as light_uncertainty
 from ._receiver import OBJECT_MARGIN as OBJECT_MARGIN
 from ._receiver import object_clearance as object_clearance
+from ._receiver import plate_detextured as plate_detextured
 from ._receiver import smooth_shading as smooth_shading
 from ._polish import LightPolish as LightPolish
 from ._polish import polish_lights as polish_lights

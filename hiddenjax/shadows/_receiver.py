@@ -20,6 +20,18 @@ brightness, by least squares that leaves out, over `passes` rounds, the pixels m
 `trim` robust standard deviations below the fit (shadows, the object's contact darkening) or
 above it (highlights). The fit then uses `u` as its reference photo (`fit_lights(reference=)`):
 the photo's ratio to the model's unshadowed image, in which the field cancels.
+
+**A textured receiver.** Wood grain or a print multiplies the photo by an albedo `rho(x)` that no
+low-order field follows; the shadows' search and the falloff read it as light. A clean plate `P`
+(the same view without the objects, the same camera, exposure and lamps) carries the same
+pattern, and through a tone curve `y = (rho E)^(1/gamma)` the pattern cancels in ratios:
+`plate_detextured` gives
+
+    y' = y u_P / P,    u_P = smooth_shading(P),
+
+the photo as it would be on a receiver of the plate's smooth albedo: the shadows (`y / P`) on the
+plate's own smooth field (the lamps' falloff, the vignetting, the curve), which `fit_lights`
+(`shading="smooth"`) then fits as it fits a plain receiver.
 """
 
 import cv2
@@ -55,6 +67,24 @@ def object_clearance(scene: Scene, camera: Camera, margin: float = OBJECT_MARGIN
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
         silhouette = cv2.dilate(silhouette.astype(np.uint8), kernel).astype(bool)
     return ~silhouette
+
+
+def plate_detextured(image, plate, pixels) -> np.ndarray:
+    """`image * u_P / plate` (module docstring): the photo `(H, W[, C])` with the receiver's texture
+    divided out by its clean `plate` (same shape, the same camera), `u_P` the plate's smooth field
+    fitted on the flat pixel indices `pixels`. Pixels where the plate is black are left as they are."""
+    image = np.asarray(image, np.float64)
+    plate = np.asarray(plate, np.float64)
+    if plate.shape != image.shape:
+        raise ValueError(f"the clean plate has shape {plate.shape} but the photo {image.shape}: it is the same view, "
+                         "taken with the same camera without the objects")
+    if not np.all(np.isfinite(plate)) or np.any(plate < 0):
+        raise ValueError("the clean plate must be finite and non-negative (a photo of the same view without the objects)")
+    if np.mean(plate > 0) < 0.5:
+        raise ValueError(f"the clean plate is black over {100 * np.mean(plate <= 0):.0f}% of its pixels: not a photo of "
+                         "the lit receiver")
+    field = smooth_shading(plate, pixels)
+    return np.where(plate > 0, image * field / np.where(plate > 0, plate, 1.0), image)
 
 
 def smooth_shading(image, pixels, *, degree: int = SHADING_DEGREE, trim: float = SHADING_TRIM,
