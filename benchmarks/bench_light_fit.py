@@ -1,7 +1,7 @@
 """Light fitting on path-traced photos: accuracy from near and far starts, time per light.
 
     python benchmarks/bench_light_fit.py [--quick] [--out DIR] [--part all|single|multi|textured|faulty]
-                                         [--cases N] [--seed S]
+                                         [--cases N] [--seed S] [--table plain|wood|satin] [--plate]
 
 Photos: Mitsuba 3's path tracer (`max_depth=4`: direct light plus two diffuse bounces, 256 spp,
 box filter) of the fixtures on a table at 128x128 pixels, each under one isotropic point light
@@ -35,7 +35,13 @@ with the distance error in standard deviations, and the falloff fit's own signs 
 prior's widening, the residual's correlation area and noise, the tone curve's power) and whether a
 warning names it or the whole fit (the summary counts the lights warned of, and those outside
 their region with no warning); beside it the plain fit (`fit_lights` with neither) on the same
-photos. `--seed` draws other desks (lamps, objects' errors, gammas).
+photos. `--seed` draws other desks (lamps, objects' errors, gammas). `--table wood` puts the desks
+on a matte wood grain (2 cm stripes, albedo 0.4-0.8 around 0.6), `--table satin` under a glossy
+layer (GGX roughness 0.25, index 1.5); the fit is told the plain desk either way, and the same
+seed draws the same lamps, errors and gammas on every table. `--plate` adds a third fit from each
+photo and its clean plate (the desk without the objects, through the same camera faults):
+`fit_lights(clearance=0.005, shading="smooth", reference=plate)`, as `hiddenjax lights
+--reference` does.
 """
 
 import argparse
