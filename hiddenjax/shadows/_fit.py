@@ -143,7 +143,9 @@ def fit_lights(
       each pixel's albedo out (`polish_lights`). Needs the polish, and no soft fit (`steps` 0).
       With `shading="smooth"` it is a clean plate taken with the same camera (a photo as written,
       not linear): the photo's ratio to it, on the plate's own smooth field, takes a textured
-      receiver's pattern out (`plate_detextured`), and the fit goes on as on a plain receiver.
+      receiver's pattern out of the shadows (`plate_detextured`), and the fit goes on as on a
+      plain receiver. The falloff still reads what of the pattern the smooth field follows, and
+      on a glossy receiver the plate does harm (docs: experiments, shadow edges).
     - `clearance`: metres; leave out the pixels within this distance of the occluders' modelled
       silhouette (`object_clearance`): a real object a few millimetres from where the scene puts
       it must not pass for shadow; half of it is the objects' placement uncertainty in
@@ -347,8 +349,8 @@ def _falloff_notes(found, plate: bool = False) -> list[str]:
     A residual rougher than `TEXTURE_NOISE` (`FalloffFit.noise`, the median local standard deviation
     in log radiance) is a textured receiver, whose pattern the falloff reads as light: on eight desks
     with a wood-grain table, 0.050-0.057, and every lamp 1.3-25 degrees off, 4 of 10 without the
-    correlation's warning (the plain desks' photos: 0.0003-0.006; a camera's photo of a lit desk at a
-    low ISO: under 0.01). The correlation area does not tell a grain from noise: a grain a few
+    correlation's warning (the plain desks' photos: 0.0003-0.006; with 1% camera noise added, about
+    0.01). The correlation area does not tell a grain from noise: a grain a few
     pixels across cancels in it (1-33 pixels on the wood desks). A glossy receiver's highlight is
     smooth, not rough: it leaves the correlated residual above (66-260 pixels on eight satin desks).
     A clean plate took the wood's median direction error from 3.96 to 2.97 degrees only (the
@@ -357,7 +359,7 @@ def _falloff_notes(found, plate: bool = False) -> list[str]:
     notes = []
     if found.noise > TEXTURE_NOISE:
         notes.append(f"the receiver's brightness varies by {100 * found.noise:.0f}% from pixel to pixel about the lamps' "
-                     "falloff (a camera's photo of a lit desk: under 1%): a textured receiver (wood grain, a print, a "
+                     "falloff (on a plain desk: about 1% or less): a textured receiver (wood grain, a print, a "
                      "cloth), whose pattern the falloff fit and the shadows' search read as light, or a very noisy "
                      "photo; the lights may be farther off than their cones and intervals say. " +
                      ("The clean plate given did not take it out: is it the same view, camera, exposure and lamps?"

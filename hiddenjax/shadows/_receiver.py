@@ -31,7 +31,9 @@ pattern, and through a tone curve `y = (rho E)^(1/gamma)` the pattern cancels in
 
 the photo as it would be on a receiver of the plate's smooth albedo: the shadows (`y / P`) on the
 plate's own smooth field (the lamps' falloff, the vignetting, the curve), which `fit_lights`
-(`shading="smooth"`) then fits as it fits a plain receiver.
+(`shading="smooth"`) then fits as it fits a plain receiver. `u_P` also follows the pattern's slow
+part, which the falloff then reads as light, and a glossy layer's highlight is not a pattern:
+the shadows take it away with the diffuse light.
 """
 
 import cv2
