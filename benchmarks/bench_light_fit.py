@@ -215,6 +215,7 @@ def _faulty(cases, render, table, rng, desk="plain", plate=False):
     cam = hj.Camera.look_at([0.0, 0.32, 0.30], [0.0, 0.0, -0.02], [0, 1, 0], 60.0, 160, 120)
     box = np.array([[-1.1, 0.1, -1.1], [1.1, 1.1, 1.1]])
     rows = []
+    table_kind = desk_table(desk)  # (the wood texture drawn once, not per case)
     for case in range(cases):
         objects = [PENCIL, CUP] if case % 3 == 2 else [PENCIL]
         count = 2 if case % 4 == 3 else 1
@@ -226,7 +227,6 @@ def _faulty(cases, render, table, rng, desk="plain", plate=False):
             lights.append(anchor + distance * np.array([np.cos(elevation) * np.sin(azimuth), np.sin(elevation),
                                                         np.cos(elevation) * np.cos(azimuth)]))
         lights = np.array(lights)
-        table_kind = desk_table(desk)
         empty = render(desk_scene([], (0.0, 0.0, 0.0), *table_kind), cam, lights) if plate else None
         photo, gamma, *taken = faulty_photo(render(desk_scene(objects, (0.0, 0.0, 0.0), *table_kind), cam, lights),
                                             rng, empty)

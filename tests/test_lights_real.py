@@ -270,6 +270,13 @@ def test_the_tone_prior_is_the_penalized_minimum_and_reaches_both_limits():
             ph._checked_tone(bad)
 
 
+def _wood_table(mesh):
+    """The desk's plane as a wood grain (2 cm stripes, albedo stretched to 0.4-0.8 around 0.6)."""
+    grain = hj.scenes.wood_texture(0.9, 1024, grain=0.02, mean=0.5, seed=3)
+    lo, hi = np.percentile(grain, [1, 99])
+    return hj.Surface(mesh, np.clip(0.4 + 0.4 * (grain - lo) / (hi - lo), 0.35, 0.85))
+
+
 def _unit(v):
     return v / np.linalg.norm(v)
 
@@ -493,9 +500,7 @@ def test_a_textured_receiver_is_told_from_a_cameras_noise(faulty_desk):
     (`test_the_falloff_places_the_lamp_...`)."""
     scene, shadows, photo, _ = faulty_desk
     _, camera = desk(size=(96, 72))
-    grain = hj.scenes.wood_texture(0.9, 1024, grain=0.02, mean=0.5, seed=3)
-    lo, hi = np.percentile(grain, [1, 99])
-    table = hj.Surface(scene[0].mesh, np.clip(0.4 + 0.4 * (grain - lo) / (hi - lo), 0.35, 0.85))
+    table = _wood_table(scene[0].mesh)
     wood = hj.render_point_lights(hj.Scene([table, *list(scene)[1:]]), camera, LIGHT[None], [0.05], pixel_samples=9,
                                   bounces=2, bounce_rays=64)
     encoded = np.clip(wood * (1 - 0.3 * _radius2(72, 96)) / np.percentile(wood, 99.5), 0, 1) ** (1 / 2.2)
@@ -801,9 +806,7 @@ def test_a_clean_plate_takes_a_wood_grain_out(tmp_path, capsys):
     direction comes within 2.5 degrees and its distance within 10%, and no texture is reported. A
     plate of another view or a black one is refused."""
     truth, camera = desk(size=(128, 96))
-    grain = hj.scenes.wood_texture(0.9, 1024, grain=0.02, mean=0.5, seed=3)
-    lo, hi = np.percentile(grain, [1, 99])
-    table = hj.Surface(truth[0].mesh, np.clip(0.4 + 0.4 * (grain - lo) / (hi - lo), 0.35, 0.85))
+    table = _wood_table(truth[0].mesh)
     photo, plate = (hj.render_point_lights(hj.Scene(surfaces), camera, LIGHT[None], [0.05], pixel_samples=9, bounces=2)
                     for surfaces in ([table, *list(truth)[1:]], [table]))
     r2, white = _radius2(96, 128), np.percentile(photo, 99.5)
