@@ -497,7 +497,9 @@ def test_a_textured_receiver_is_told_from_a_cameras_noise(faulty_desk):
     """The desk's photo with a wood-grain table (the fit told a plain one): the falloff's residual is
     rough, and the fit names a textured receiver, a plain sheet and the clean plate; the plain
     photo with a camera's noise (1% per pixel) is not taken for texture, nor is it without
-    (`test_the_falloff_places_the_lamp_...`)."""
+    (`test_the_falloff_places_the_lamp_...`). The fit's residual image shows why: on the wood it is
+    the grain (it follows the table's log albedo, through the tone curve), on the plain photo the
+    noise at its own size."""
     scene, shadows, photo, _ = faulty_desk
     _, camera = desk(size=(96, 72))
     table = _wood_table(scene[0].mesh)
@@ -513,6 +515,15 @@ def test_a_textured_receiver_is_told_from_a_cameras_noise(faulty_desk):
         told = [note for note in sh._fit._falloff_notes(found) if "textured receiver" in note]
         assert bool(told) == textured, (found.noise, told)
         assert all("reference=" in note and "clean plate" in note and "plain matte sheet" in note for note in told), told
+        residual = found.residual_image()  # log(model) - log(photo) where fitted, NaN elsewhere
+        assert residual.shape == image.shape[:2] and np.isfinite(residual.reshape(-1)[found.pixels]).all()
+        assert np.isnan(residual).sum() == residual.size - len(found.pixels) > 0
+        if textured:  # the photo is y ~ (albedo m)^beta: the residual is -beta log(albedo) plus what the fit absorbed
+            seen = sh.ShadowScene.from_scene(hj.Scene([table, *list(scene)[1:]]), camera)
+            grain = -np.log(np.asarray(seen.rows_to_image(seen.albedo)).reshape(-1)[found.pixels])
+            assert np.corrcoef(grain, found.residual)[0, 1] > 0.8, np.corrcoef(grain, found.residual)  # measured 0.94
+        else:
+            assert 0.008 < np.nanstd(residual) < 0.012, np.nanstd(residual)  # the 1% noise (measured 1.00%)
         if not textured:
             assert found.noise > 0.005, found.noise  # the noise is seen, at its own size
             assert np.degrees(np.arccos(np.clip(_unit(found.positions[0] - anchor) @ _unit(LIGHT - anchor), -1, 1))) < 1
@@ -823,8 +834,10 @@ def test_a_clean_plate_takes_a_wood_grain_out(tmp_path, capsys):
     for label, extra in (("alone", []), ("plate", ["--reference", str(tmp_path / "plate.png")])):
         out = tmp_path / f"{label}.json"
         assert main(["lights", str(tmp_path / "desk.toml"), str(tmp_path / "photo.png"), "-o", str(out),
-                     "--within", "1.0", *extra]) == 0
+                     "--within", "1.0", "--png", str(tmp_path / f"{label}.png"), *extra]) == 0
         found = runs[label] = json.loads(out.read_text())
+        sheet = hj.io.read_image(tmp_path / f"{label}.png")  # four panels: photo, fit, difference, the falloff's
+        assert sheet.shape[1] > 3.5 * sheet.shape[0], sheet.shape
         light = found["lights"][0]
         true = LIGHT - np.array(light["from_point"])
         found["angle"] = np.degrees(np.arccos(np.clip(np.dot(light["direction"], true) / np.linalg.norm(true), -1, 1)))
@@ -832,6 +845,8 @@ def test_a_clean_plate_takes_a_wood_grain_out(tmp_path, capsys):
         found["textured"] = any("textured receiver" in w for w in found["warnings"])
     capsys.readouterr()
     assert runs["alone"]["textured"] and runs["alone"]["shading"] == "smooth", runs["alone"]
+    noise = [runs[k]["camera_response"]["residual_noise"] for k in ("alone", "plate")]  # the warning's measure
+    assert noise[0] > sh._fit.TEXTURE_NOISE > noise[1], noise
     plated = runs["plate"]
     assert plated["shading"] == "smooth" and not plated["textured"], plated
     assert plated["angle"] < 2.5 and abs(plated["distance_ratio"] - 1) < 0.1, plated

@@ -16,6 +16,8 @@ from ..scene import Scene
 from ..transport import render_point_lights
 from ._common import IMAGE_HELP, _output, photo_options
 
+FALLOFF_LIMIT = 0.1  # log radiance drawn at full colour in the picture's falloff panel (about 10%)
+
 
 def add_parsers(sub) -> None:
     """This module's subcommand(s) of `hiddenjax`."""
@@ -56,7 +58,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--within", type=float, metavar="METRES",
                    help="without --init: search for the lights within this distance of the objects (default: a "
                         "few object sizes around them)")
-    p.add_argument("--png", help="also write a picture: the photo, the fitted image and their difference")
+    p.add_argument("--png", help="also write a picture: the photo, the fitted image and their difference "
+                   "(with --shading smooth also the lamps' falloff fit against the photo, in log radiance)")
     photo_options(p)
     p.set_defaults(run=lights)
 
@@ -155,8 +158,8 @@ def lights(args) -> dict:
                                   shading=None if shading == "none" else shading, box=box,
                                   clearance=clearance or None, tone=tone)
     seconds = time.perf_counter() - t0
-    if shading == "smooth":  # the picture's model: the photo's smooth shading times the ratio, as with a reference
-        reference = _shadows.smooth_shading(image, np.asarray(shadows.pixels))
+    if shading == "smooth" and reference is None:  # the picture's model: the photo's smooth shading (or the clean
+        reference = _shadows.smooth_shading(image, np.asarray(shadows.pixels))  # plate) times the shadows' ratio
     grey = image.mean(axis=-1) if image.ndim == 3 else image
     model = np.asarray(render_point_lights(spec.scene, camera, fit.positions, fit.intensities, pixel_samples=4))
     model = model + fit.ambient
@@ -185,10 +188,13 @@ def lights(args) -> dict:
                    seconds=round(seconds, 2))
     if png is not None:
         white = float(np.percentile(grey, 99))
-        io.contact_sheet(png, [("photo", grey, "radiance", white),
-                               (f"fitted: {len(fit.positions)} light(s) + ambient", model, "radiance", white),
-                               ("|fitted - photo|", np.where(inner, np.abs(model - grey), 0.0), "map")],
-                         height=200, columns=3)
+        panels = [("photo", grey, "radiance", white),
+                  (f"fitted: {len(fit.positions)} light(s) + ambient", model, "radiance", white),
+                  ("|fitted - photo|", np.where(inner, np.abs(model - grey), 0.0), "map")]
+        if fit.falloff is not None:  # the lamps' falloff against the photo's brightness: what the warnings measure
+            panels.append((f"falloff fit - photo, log\n(+-{FALLOFF_LIMIT:g}; grey: not fitted)",
+                           fit.falloff.residual_image(), "signed", FALLOFF_LIMIT))
+        io.contact_sheet(png, panels, height=200, columns=len(panels))
     io.write_text(out, json.dumps(results, indent=2))
     for k, (p, i, u) in enumerate(zip(fit.positions, fit.intensities, seen)):
         spread = "" if u["angle_95"] is None else (f"; seen from the objects: {u['distance']:.3f} m away (95%: "
@@ -211,4 +217,5 @@ def _response(falloff) -> dict | None:
     return dict(tone_power=falloff.beta, gamma=1.0 / falloff.beta,
                 tone_prior=None if falloff.tone is None else list(falloff.tone), vignetting=falloff.vignetting.tolist(),
                 ambient=falloff.ambient, prior_scale=falloff.prior_scale.tolist(), refits_share=share,
-                converged=falloff.converged)
+                converged=falloff.converged, residual_noise=falloff.noise, residual_correlation=falloff.misfit,
+                fitted_pixels=len(falloff.pixels))

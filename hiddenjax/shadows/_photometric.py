@@ -167,7 +167,9 @@ class FalloffFit(NamedTuple):
     `ambient` the constant light `a >= 0` beside the lamps, over their mean lit radiance (room light,
     a wall's glow); `resamples` the number of refits behind `resampled` (its sample covariance has
     `resamples - 1` degrees of freedom, which `light_uncertainty` carries into its intervals); `tone`
-    the prior `(mean, sd)` on the tone curve's power it was fitted with (None: free)."""
+    the prior `(mean, sd)` on the tone curve's power it was fitted with (None: free); `pixels (N,)`
+    the flat indices (into the photo's `shape`) of the pixels the last fit used and `residual (N,)`
+    its log residual there, model minus photo (`residual_image` draws it)."""
 
     positions: np.ndarray
     covariance: np.ndarray
@@ -183,6 +185,20 @@ class FalloffFit(NamedTuple):
     ambient: float
     resamples: int = 0
     tone: tuple | None = None
+    pixels: np.ndarray | None = None
+    residual: np.ndarray | None = None
+    shape: tuple[int, int] | None = None
+
+    def residual_image(self) -> np.ndarray:
+        """`(H, W)`: the last fit's log residual, `log(model) - log(photo)` (about the relative error),
+        at the pixels it fitted; NaN at the others (shadows, clipped pixels, other surfaces). A lamp's
+        falloff the fit explains leaves the photo's noise; a highlight, a pattern or light the scene
+        does not hold stays as a shape."""
+        if self.pixels is None or self.residual is None or self.shape is None:
+            raise ValueError("this FalloffFit holds no residual (built without pixels, residual and shape)")
+        image = np.full(int(np.prod(self.shape)), np.nan)
+        image[np.asarray(self.pixels)] = self.residual
+        return image.reshape(self.shape)
 
 
 class _Brightness:
@@ -562,10 +578,11 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     vignetting = q[2:2 + VIGNETTING_TERMS] / beta if beta != 0 else np.zeros(VIGNETTING_TERMS)
     blocks = lambda C: np.stack([C[3 * l: 3 * l + 3, 3 * l: 3 * l + 3] for l in range(L)])
     noise = float(np.median(local))
-    misfit = residual_correlation(photo_rows(found.x, b) / local, b.pixels, b.shape)
+    residual = photo_rows(found.x, b)
+    misfit = residual_correlation(residual / local, b.pixels, b.shape)
     return FalloffFit(positions, blocks(covariance), beta, vignetting, float(kappa), noise, scales,
                       blocks(resampled), bool(found.status != 0), scan, float(misfit), float(q[2 + VIGNETTING_TERMS]),
-                      int(resamples), tone)
+                      int(resamples), tone, np.asarray(b.pixels).copy(), residual, tuple(b.shape))
 
 
 def _moved_objects(scene: Scene, placement: float, normals, rng) -> Scene:
