@@ -2,6 +2,7 @@
 
     python benchmarks/bench_light_fit.py [--quick] [--out DIR] [--part all|single|multi|textured|faulty]
                                          [--cases N] [--seed S] [--table plain|wood|satin] [--plate]
+                                         [--told-gloss ROUGHNESS]
 
 Photos: Mitsuba 3's path tracer (`max_depth=4`: direct light plus two diffuse bounces, 256 spp,
 box filter) of the fixtures on a table at 128x128 pixels, each under one isotropic point light
@@ -37,8 +38,9 @@ warning names it or the whole fit (the summary counts the lights warned of, and 
 their region with no warning); beside it the plain fit (`fit_lights` with neither) on the same
 photos. `--seed` draws other desks (lamps, objects' errors, gammas). `--table wood` puts the desks
 on a matte wood grain (2 cm stripes, albedo 0.4-0.8 around 0.6), `--table satin` under a glossy
-layer (GGX roughness 0.25, index 1.5); the fit is told the plain desk either way, and the same
-seed draws the same lamps, errors and gammas on every table. `--plate` adds a third fit from each
+layer (GGX roughness 0.25, index 1.5); the fit is told the plain desk (with `--told-gloss`, the
+satin desk's layer of a guessed roughness, `--told-gloss 0.4`, as a scene file's `roughness = 0.4`
+declares it, which the fit refines), and the same seed draws the same lamps, errors and gammas on every table. `--plate` adds a third fit from each
 photo and its clean plate (the desk without the objects, through the same camera faults):
 `fit_lights(clearance=0.005, shading="smooth", reference=plate)`, as `hiddenjax lights
 --reference` does.
@@ -209,9 +211,11 @@ def desk_table(name: str):
     return 0.6, (0.25 if name == "satin" else None)
 
 
-def _faulty(cases, render, table, rng, desk="plain", plate=False):
+def _faulty(cases, render, table, rng, desk="plain", plate=False, told=None):
     """The faulty-photo study (module docstring) on a `desk` table: one row per light and fit; with a
-    `plate`, a third fit from the photo and its clean plate (`fit_lights(shading="smooth", reference=)`)."""
+    `plate`, a third fit from the photo and its clean plate (`fit_lights(shading="smooth", reference=)`);
+    `told`: the fit's desk is glossy, of that roughness (a satin table declared in the scene file; the fit
+    takes it as a start and fits it)."""
     cam = hj.Camera.look_at([0.0, 0.32, 0.30], [0.0, 0.0, -0.02], [0, 1, 0], 60.0, 160, 120)
     box = np.array([[-1.1, 0.1, -1.1], [1.1, 1.1, 1.1]])
     rows = []
@@ -231,7 +235,7 @@ def _faulty(cases, render, table, rng, desk="plain", plate=False):
         photo, gamma, *taken = faulty_photo(render(desk_scene(objects, (0.0, 0.0, 0.0), *table_kind), cam, lights),
                                             rng, empty)
         offset = rng.normal(size=3) * np.array([1.0, 0.0, 1.0])
-        model = desk_scene(objects, 0.003 * offset / np.linalg.norm(offset))
+        model = desk_scene(objects, 0.003 * offset / np.linalg.norm(offset), 0.6, told or None)
         fits = [("clearance + smooth shading", photo, dict(clearance=0.005, shading="smooth")), ("plain", photo, {})]
         if plate:
             fits.append(("clearance + smooth shading + clean plate", photo,
@@ -302,7 +306,10 @@ def main(argv=None):
     ap.add_argument("--cases", type=int, default=16, help="faulty desk photos (--part faulty; default 16)")
     ap.add_argument("--table", choices=("plain", "wood", "satin"), default="plain",
                     help="the faulty desks' table (--part faulty): matte plain (default), matte wood grain or "
-                         "glossy satin; the fit is told only the plain desk either way")
+                         "glossy satin; the fit is told only the plain desk unless --told-gloss")
+    ap.add_argument("--told-gloss", type=float, default=None, metavar="ROUGHNESS",
+                    help="--table satin: the fit's desk is glossy (index 1.5), of this roughness as a scene file "
+                         "would declare it (roughness = 0.4: a guess; the satin's is 0.25), which the fit refines")
     ap.add_argument("--plate", action="store_true",
                     help="--part faulty: a third fit from each photo and its clean plate (the desk without the "
                          "objects, the same camera): hiddenjax lights --reference")
@@ -319,9 +326,12 @@ def main(argv=None):
     table = Table()
     table.append(("fixture / light", "start", "error (cm)", "time (s), x Embree render"))
     if args.part == "faulty":
+        if args.told_gloss is not None and args.table != "satin":
+            ap.error("--told-gloss declares the satin table's layer: use it with --table satin")
         rows = _faulty(2 if args.quick else args.cases, render, table, np.random.default_rng(args.seed), args.table,
-                       args.plate)
-        results = dict(photos=photos, seed=args.seed, table=args.table, faulty=rows, summary=_faulty_summary(rows))
+                       args.plate, args.told_gloss)
+        results = dict(photos=photos, seed=args.seed, table=args.table, told_gloss=args.told_gloss, faulty=rows,
+                       summary=_faulty_summary(rows))
         table.print_all()
         for label, summary in results["summary"].items():
             print(f"{label}: direction within 3 deg {summary['direction_within_3deg']:.0%} (median "

@@ -218,4 +218,4 @@ def _response(falloff) -> dict | None:
                 tone_prior=None if falloff.tone is None else list(falloff.tone), vignetting=falloff.vignetting.tolist(),
                 ambient=falloff.ambient, prior_scale=falloff.prior_scale.tolist(), refits_share=share,
                 converged=falloff.converged, residual_noise=falloff.noise, residual_correlation=falloff.misfit,
-                fitted_pixels=len(falloff.pixels))
+                fitted_pixels=len(falloff.pixels), roughness=falloff.roughness)

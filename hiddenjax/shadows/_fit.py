@@ -250,7 +250,7 @@ def fit_lights(
         prior = _with_placement(covariance, positions, scene, clearance)
         found = fit_falloff(image, scene, shadows, positions, reference, prior, box=box_used,
                             placement=0.5 * (clearance or 0.0),  # (the spread `_with_placement` gives the objects)
-                            intensities=intensities, tone=tone)
+                            intensities=intensities, tone=tone, camera=camera)
         positions, covariance = found.positions, found.covariance
         trajectory.append(positions)
     notes = _distrust(positions, a, float(scale), None if searched is None else searched.box, shading == "smooth")

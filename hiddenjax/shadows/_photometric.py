@@ -101,17 +101,31 @@ a lower power and, along the valley, a shorter distance. On a desk rendered with
 physics the lamp came out 0.55 cm short with 64 independent rays per pixel (three draws), 0.30 cm
 with 64 stratified ones and 0.02 cm (spread 0.05 cm over five draws) with 256 stratified, hence
 `BOUNCE_RAYS`.
+
+**A glossy receiver.** A satin or varnished table (`Surface(roughness=...)`, Mitsuba's
+`roughplastic`: a diffuse base under a rough dielectric layer) seen by the camera shows the lamp's
+highlight, which a matte `h_l` reads as falloff. Given the camera (`fit_falloff(camera=)`, as
+`fit_lights` passes it), the pixels on such a surface are shaded with its BRDF seen from the camera,
+`h_l` times
+
+    g = s t(n.v) t(n.w) + pi f_s(v, w) / rho,
+
+the coated base (`s = 1 / ((1 - F_dr) eta^2)`, `t` the layer's transmission) and the GGX lobe `f_s`
+(`scene._gloss`), `v` towards the camera and `w` towards the light: the highlight then moves with
+the light and places it. The objects' bounce light stays diffuse.
 """
 
 import copy
+import functools
 from typing import NamedTuple
 
 import cv2
 import numpy as np
 import scipy.optimize
 
-from ..scene import Scene, Surface
-from ..transport._embree import RayCaster
+from ..scene import Camera, Scene, Surface
+from ..scene._gloss import MAX_ROUGHNESS, MIN_ROUGHNESS, Gloss, specular
+from ..transport._embree import RayCaster, pixel_centre_hits
 from ._polish import diffuse_bounce, residual_correlation
 from ._search import _unit_images, occluder_centre
 
@@ -129,6 +143,7 @@ PRIOR_CHECKS = 4  # at most this many rounds of the shadow priors' checks, each 
 BOUNCE_SHARE = 2e-3  # a pixel whose objects' bounce light is more than this share of a light's direct light is left out
 BOUNCE_BLUR = 2.0  # pixels: the bounce light's Monte Carlo estimate is smoothed over this (a Gaussian sigma)
 NOISE_WIDTH = 8.0  # pixels: the photo's noise is measured over this (a Gaussian sigma of the squared residual)
+ROUGHNESS_GRID = 14  # roughnesses tried for a glossy receiver, log spaced over the GGX range (steps of 1.26x)
 
 
 class DistanceScan(NamedTuple):
@@ -169,7 +184,8 @@ class FalloffFit(NamedTuple):
     `resamples - 1` degrees of freedom, which `light_uncertainty` carries into its intervals); `tone`
     the prior `(mean, sd)` on the tone curve's power it was fitted with (None: free); `pixels (N,)`
     the flat indices (into the photo's `shape`) of the pixels the last fit used and `residual (N,)`
-    its log residual there, model minus photo (`residual_image` draws it)."""
+    its log residual there, model minus photo (`residual_image` draws it); `roughness` the glossy
+    receivers' GGX roughness the fit shaded them with (fitted, or the scene's; None: matte)."""
 
     positions: np.ndarray
     covariance: np.ndarray
@@ -188,6 +204,7 @@ class FalloffFit(NamedTuple):
     pixels: np.ndarray | None = None
     residual: np.ndarray | None = None
     shape: tuple[int, int] | None = None
+    roughness: float | None = None
 
     def residual_image(self) -> np.ndarray:
         """`(H, W)`: the last fit's log residual, `log(model) - log(photo)` (about the relative error),
@@ -205,8 +222,9 @@ class _Brightness:
     """The fitted pixels' log brightness and each light's unit image there: the falloff plus the
     objects' bounce light (module docstring)."""
 
-    def __init__(self, image, scene: Scene, shadows, positions, shading):
+    def __init__(self, image, scene: Scene, shadows, positions, shading, camera: Camera | None = None):
         self.y = np.asarray(shadows.image_to_rows(image), np.float64)
+        self.glossy, self.view = _glossy_receivers(scene, shadows, camera)
         self.u = np.asarray(shadows.image_to_rows(shading), np.float64)
         self.top = float(np.max(np.asarray(image)))
         self.shape, self.shadows = shadows.image_shape, shadows
@@ -214,7 +232,7 @@ class _Brightness:
         self.caster = RayCaster(Scene(observed) if observed else scene)  # the falloff alone: no occluders
         self.occluded = RayCaster(scene)
         positions = np.array(positions, np.float64)
-        self.anchor, self.start, self._last = occluder_centre(scene), positions, None
+        self.anchor, self.start, self._last, self._matte = occluder_centre(scene), positions, None, None
         bare = _unit_images(self.caster, self.shadows, positions)  # (L, P): the direct light at the start
         self.taken = self.kept(positions, bare)
         self._select(self.taken)
@@ -273,18 +291,115 @@ class _Brightness:
         blur = lambda a: cv2.GaussianBlur(a.reshape(H, W), (0, 0), width).reshape(-1)
         return (blur(image) / np.maximum(blur(weight), 1e-12))[self.pixels]
 
+    @property
+    def roughness(self) -> float | None:
+        """The glossy receivers' roughness the unit images use (None: every receiver is matte)."""
+        return self.glossy[0][1].roughness if self.glossy else None
+
+    def set_roughness(self, roughness: float):
+        """Shade every glossy receiver with GGX roughness `roughness` (its index of refraction kept)."""
+        if roughness != self.roughness:
+            self.glossy = [(on, _gloss(roughness, gloss.ior)) for on, gloss in self.glossy]
+            self._last = None
+
     def images(self, positions, lights) -> np.ndarray:
         """`(N, K)` the unit image of light `lights[k]` placed at `positions[k]`."""
         positions = np.asarray(positions, np.float64)
         key = positions.tobytes() + np.asarray(lights).tobytes()
         if self._last is not None and self._last[0] == key:  # a Jacobian's steps in the other parameters
             return self._last[1]
-        direct = _unit_images(self.caster, self.shadows, positions).T[self.keep]
+        if self._matte is not None and self._matte[0] == key:  # the same lights, another roughness
+            direct = self._matte[1].copy()
+        else:
+            direct = _unit_images(self.caster, self.shadows, positions).T[self.keep]
+            self._matte = key, direct.copy()
+        if self.glossy:  # a glossy receiver's pixels: the lobe and the coated base over the matte shading
+            (x, n, rho), view = self.points, self.view[self.keep]
+            for every, gloss in self.glossy:
+                on = every[self.keep]
+                for k, p in enumerate(positions):
+                    direct[on, k] *= glossy_gain(x[on], n[on], rho[on], view[on], gloss, p)
         d0 = np.linalg.norm(self.start[lights] - self.anchor, axis=1)
         d = np.maximum(np.linalg.norm(positions - self.anchor, axis=1), 1e-9)
         out = direct + self.bounce[:, lights] * (d0 / d) ** 2
         self._last = key, out
         return out
+
+
+def _gloss(roughness: float, ior: float) -> Gloss:
+    """A `Gloss` of `roughness` whose interface tables (transmission, internal reflection) are interpolated
+    linearly in log roughness between those of `ROUGHNESS_GRID`'s neighbours (each built once: 0.1 s);
+    the lobe itself (`specular`) takes the roughness as it is."""
+    steps = np.log(roughness / MIN_ROUGHNESS) / np.log(MAX_ROUGHNESS / MIN_ROUGHNESS) * (ROUGHNESS_GRID - 1)
+    k = int(np.clip(np.floor(steps), 0, ROUGHNESS_GRID - 2))
+    f = float(np.clip(steps - k, 0.0, 1.0))
+    a, b = _grid_gloss(k, ior), _grid_gloss(k + 1, ior)
+    out = copy.copy(a)
+    out.roughness = float(roughness)
+    out.transmission = (1 - f) * a.transmission + f * b.transmission
+    out.internal = (1 - f) * a.internal + f * b.internal
+    out.diffuse_scale = 1.0 / ((1.0 - out.internal) * ior**2)
+    return out
+
+
+@functools.lru_cache(maxsize=64)
+def _grid_gloss(k: int, ior: float) -> Gloss:
+    """`Gloss` at the `k`-th roughness of `ROUGHNESS_GRID` (log spaced over the GGX range)."""
+    return Gloss(float(np.geomspace(MIN_ROUGHNESS, MAX_ROUGHNESS, ROUGHNESS_GRID)[k]), ior)
+
+
+def _fit_roughness(b: _Brightness, positions, params, tone):
+    """The glossy receivers' roughness (module docstring) that fits the photo's brightness best with the
+    lights at `positions`: `_log_fit`'s loss over `ROUGHNESS_GRID` roughnesses (log spaced), refined by a
+    parabola in log roughness through the least and its neighbours; `b` is left shaded with it.
+    Returns `_log_fit`'s `(params, loss, residual)` there."""
+    lights = np.arange(len(positions))
+    grid = np.geomspace(MIN_ROUGHNESS, MAX_ROUGHNESS, ROUGHNESS_GRID)
+    losses = []
+    for r in grid:
+        b.set_roughness(float(r))
+        losses.append(_log_fit(b.images(positions, lights), b.log_y, b.r2, params, tone)[1])
+    k = int(np.argmin(losses))
+    log_r = np.log(grid[k])
+    if 0 < k < len(grid) - 1:
+        l0, l1, l2 = losses[k - 1: k + 2]
+        if l0 - 2 * l1 + l2 > 0:
+            log_r += 0.5 * (np.log(grid[1]) - np.log(grid[0])) * (l0 - l2) / (l0 - 2 * l1 + l2)
+    b.set_roughness(float(np.clip(np.exp(log_r), MIN_ROUGHNESS, MAX_ROUGHNESS)))
+    return _log_fit(b.images(positions, lights), b.log_y, b.r2, params, tone)
+
+
+def _glossy_receivers(scene: Scene, shadows, camera: Camera | None):
+    """`([(pixels (P,) bool, Gloss)], view (P, 3))`: the fitted pixels on each glossy surface of `scene`
+    and the unit directions from them to `camera`; `([], None)` without a camera or a glossy surface."""
+    if camera is None or not any(surface.observe and surface.gloss is not None for surface in scene):
+        return [], None
+    if (camera.height, camera.width) != tuple(shadows.image_shape):
+        raise ValueError(f"the camera's image {(camera.height, camera.width)} is not the fitted pixels' "
+                         f"{tuple(shadows.image_shape)}: give the camera the ShadowScene was built with")
+    surface = pixel_centre_hits(RayCaster(scene), camera).surface[np.asarray(shadows.pixels)]
+    view = np.asarray(camera.origin, np.float64) - np.asarray(shadows.points, np.float64)
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-300)
+    glossy = [(surface == k, s.gloss) for k, s in enumerate(scene) if s.observe and s.gloss is not None]
+    return [(on, gloss) for on, gloss in glossy if on.any()], view
+
+
+def glossy_gain(x, n, rho, view, gloss, p) -> np.ndarray:
+    """`(N,)`: a glossy receiver's direct light from a point light at `p` over the matte `rho/pi n.w / d^2`,
+
+        g = s t(n.v) t(n.w) + pi f_s(v, w) (n.w) / (rho n.w),
+
+    at points `x (N, 3)` (normals `n`, base albedo `rho`, unit `view` towards the camera), with the
+    coated base's scale `s` and transmission `t` and the lobe `f_s` of `gloss` (`scene._gloss`: Mitsuba's
+    `roughplastic`); 1 where the light is below the surface (the matte shading is 0 there)."""
+    w = np.asarray(p, np.float64) - x
+    w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-300)
+    h = view + w
+    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
+    mu, mu_v = np.sum(n * w, axis=1), np.sum(n * view, axis=1)
+    lobe = specular(mu_v, mu, np.sum(n * h, axis=1), np.sum(view * h, axis=1), gloss.roughness, gloss.ior)
+    gain = gloss.diffuse_scale * gloss.t(mu_v) * gloss.t(mu) + np.pi * lobe / np.maximum(rho * mu, 1e-12)
+    return np.where(mu > 0, gain, 1.0)
 
 
 def _log_residual(q, h, log_y, r2):
@@ -427,7 +542,7 @@ def _scan(b: _Brightness, positions, box, points: int, sweeps: int, level: float
 
 def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=None, placement: float = 0.0,
                 resamples: int = RESAMPLES, points: int = 25, max_evaluations: int = 200,
-                intensities=None, tone=None) -> FalloffFit:
+                intensities=None, tone=None, camera: Camera | None = None, fit_roughness: bool = True) -> FalloffFit:
     """The lights' positions from the photo's brightness, the shadows' directions as a prior (module
     docstring): a scan along each light's ray from the occluders' centre through `positions (L, 3)`
     (`scan_distances`; with several lights two sweeps, each light scanned again once the others are
@@ -448,7 +563,13 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     polish's), give each light's share of the light at the objects (module docstring: the shadows'
     depths fix it, the falloff alone does not see it); default none. `tone` `(mean, sd)`: a Gaussian
     prior on the tone curve's power (`CAMERA_TONE` for a camera's 8-bit photo; module docstring);
-    default none, the power free within `TONE_POWER`.
+    default none, the power free within `TONE_POWER`. `camera`: the photo's camera (the one `shadows`
+    was built with); with it, the pixels on a glossy surface (`Surface(roughness=...)`: a satin or
+    varnished table) are shaded with its lobe and coated base seen from it (`glossy_gain`, module
+    docstring); without it, or where every surface is matte, the receiver is taken as matte. Their
+    roughness is fitted (`fit_roughness`, the default: the scene's value says the table is glossy, its
+    index of refraction is kept) before and after the scan and after the joint fit, which is settled
+    again where it moved; the positions' covariance holds it fixed.
     """
     tone = _checked_tone(tone)
     positions = np.array(positions, np.float64)
@@ -467,8 +588,13 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         raise ValueError(f"resamples must be 0 or an integer >= 2 (a spread needs two refits), got {resamples}")
     if prior.shape != (L, 3, 3) or not np.all(np.isfinite(prior)):
         raise ValueError(f"prior must be one finite 3x3 covariance per light, shape {(L, 3, 3)}, got {prior.shape}")
-    b = _Brightness(image, scene, shadows, positions, shading)
+    b = _Brightness(image, scene, shadows, positions, shading, camera)
+    fit_roughness = bool(fit_roughness and b.glossy)
+    if fit_roughness:  # the highlight's width, from the starting places (their directions are the shadows')
+        _fit_roughness(b, positions, None, tone)
     scan, params, _, residual = _scan(b, positions, box, points, 1 if L == 1 else 2, 0.95, tone)
+    if fit_roughness:
+        params, _, residual = _fit_roughness(b, scan.positions, params, tone)
     Q = len(params)
     directions, shadow_priors = [], []
     for p, S in zip(positions, prior):  # the shadow's direction and its angular covariance across the ray
@@ -488,12 +614,17 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         e0 = irradiance(intensities, positions)
         shares = (e0 - e0[0])[shared]
 
+    R = int(fit_roughness)  # the glossy receivers' log roughness, fitted with the rest: z = [q, (log r), positions]
+    O = Q + R  # where the positions start in z
+
     def photo_rows(z, brightness):
-        return _log_residual(z[:Q], brightness.images(z[Q:].reshape(L, 3), np.arange(L)), brightness.log_y,
+        if R:
+            brightness.set_roughness(float(np.exp(z[Q])))
+        return _log_residual(z[:Q], brightness.images(z[O:].reshape(L, 3), np.arange(L)), brightness.log_y,
                              brightness.r2)
 
     def residuals(z, weight, brightness):
-        v = z[Q:].reshape(L, 3) - b.anchor
+        v = z[O:].reshape(L, 3) - b.anchor
         u = v / np.maximum(np.linalg.norm(v, axis=1), 1e-300)[:, None]
         rows = [weight * photo_rows(z, brightness), _tone_row(z, tone),
                 *((E @ (u[l] - directions[l])) / np.sqrt(variances) for l, (E, variances) in enumerate(priors))]
@@ -502,10 +633,12 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
             rows.append(((logs - logs[0])[shared] - shares) / SHARE_SIGMA)
         return np.concatenate(rows)
 
-    z = np.concatenate([params, scan.positions.reshape(-1)])
+    z = np.concatenate([params, np.log([b.roughness] if R else []), scan.positions.reshape(-1)])
     lower, upper = _tone_bounds(len(z))
+    if R:
+        lower[Q], upper[Q] = np.log(MIN_ROUGHNESS), np.log(MAX_ROUGHNESS)
     if box is not None:
-        lower[Q:], upper[Q:] = np.tile(box[0], L), np.tile(box[1], L)
+        lower[O:], upper[O:] = np.tile(box[0], L), np.tile(box[1], L)
     z = np.clip(z, lower + 1e-9, upper - 1e-9)
 
     def solve(start, weight, brightness):
@@ -545,10 +678,10 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
                 c[M + 2 * l: M + 2 * l + 2] = 0.0
                 alone = np.linalg.pinv(J.T @ (c[:, None] * J), hermitian=True)
                 z_alone = found.x + alone @ (J.T @ ((1.0 - c) * f))
-                v = z_alone[Q + 3 * l: Q + 3 * l + 3] - b.anchor
+                v = z_alone[O + 3 * l: O + 3 * l + 3] - b.anchor
                 u = v / max(np.linalg.norm(v), 1e-300)
                 across = (np.eye(3) - np.outer(u, u)) / max(np.linalg.norm(v), 1e-300)
-                C = E @ across @ alone[Q + 3 * l: Q + 3 * l + 3, Q + 3 * l: Q + 3 * l + 3] @ across.T @ E.T
+                C = E @ across @ alone[O + 3 * l: O + 3 * l + 3, O + 3 * l: O + 3 * l + 3] @ across.T @ E.T
                 checked[l] = _prior_scale(E @ (u - directions[l]), C, np.diag(variances))
             settled = np.allclose(checked, scales, rtol=1e-3)
             scales = checked
@@ -560,29 +693,29 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
         return found, weight, local, kappa, scales
 
     found, weight, local, kappa, scales = settle(b, z, residual)
-    if not np.array_equal(b.kept(found.x[Q:].reshape(L, 3)), b.taken):  # the found lights shadow other pixels
-        b = _Brightness(image, scene, shadows, found.x[Q:].reshape(L, 3), shading)
+    if not np.array_equal(b.kept(found.x[O:].reshape(L, 3)), b.taken):  # the found lights shadow other pixels
+        b = _Brightness(image, scene, shadows, found.x[O:].reshape(L, 3), shading, camera)
         found, weight, local, kappa, scales = settle(b, found.x, photo_rows(found.x, b))
     J = found.jac  # scaled by the robust loss: J^T J is the Gauss-Newton Hessian of the cost
-    covariance = np.linalg.pinv(J.T @ J)[Q:, Q:]
+    covariance = np.linalg.pinv(J.T @ J)[O:, O:]  # marginalized over the rest (the roughness too)
     resampled = np.zeros_like(covariance)
     if resamples:  # the model's own error: the bounce light's rays and the objects' places drawn again
         rng = np.random.default_rng(0)
-        draws = [solve(found.x, weight, b.redrawn(_moved_objects(scene, placement, b.points[1], rng), k + 1)).x[Q:]
+        draws = [solve(found.x, weight, b.redrawn(_moved_objects(scene, placement, b.points[1], rng), k + 1)).x[O:]
                  for k in range(int(resamples))]
         resampled = np.cov(np.array(draws), rowvar=False)
         covariance = covariance + resampled
     q = found.x[:Q]
-    positions = found.x[Q:].reshape(L, 3)
+    positions = found.x[O:].reshape(L, 3)
     beta = float(q[1])
     vignetting = q[2:2 + VIGNETTING_TERMS] / beta if beta != 0 else np.zeros(VIGNETTING_TERMS)
     blocks = lambda C: np.stack([C[3 * l: 3 * l + 3, 3 * l: 3 * l + 3] for l in range(L)])
     noise = float(np.median(local))
-    residual = photo_rows(found.x, b)
+    residual = photo_rows(found.x, b)  # (and the roughness set to the answer's)
     misfit = residual_correlation(residual / local, b.pixels, b.shape)
     return FalloffFit(positions, blocks(covariance), beta, vignetting, float(kappa), noise, scales,
                       blocks(resampled), bool(found.status != 0), scan, float(misfit), float(q[2 + VIGNETTING_TERMS]),
-                      int(resamples), tone, np.asarray(b.pixels).copy(), residual, tuple(b.shape))
+                      int(resamples), tone, np.asarray(b.pixels).copy(), residual, tuple(b.shape), b.roughness)
 
 
 def _moved_objects(scene: Scene, placement: float, normals, rng) -> Scene:
