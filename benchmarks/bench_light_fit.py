@@ -188,11 +188,12 @@ def _falloff_signs(falloff, k: int) -> dict:
     """What the falloff fit says of its own health for light `k` (none without it): how many times the
     shadow's direction prior was widened, the residual's correlation area (pixels) before the prior's
     check and after the last fit (`misfit`, which the fit's warning reads), its noise (log radiance),
-    the tone curve's power and the ambient over the lamps' mean radiance (the desks have none)."""
+    the tone curve's power, the ambient over the lamps' mean radiance (the desks have none) and a glossy
+    desk's fitted roughness (None: matte)."""
     if falloff is None:
         return {}
     return dict(prior_scale=float(falloff.prior_scale[k]), correlation=falloff.correlation, misfit=falloff.misfit,
-                noise=falloff.noise, tone_power=falloff.beta, ambient=falloff.ambient)
+                noise=falloff.noise, tone_power=falloff.beta, ambient=falloff.ambient, roughness=falloff.roughness)
 
 
 def _warned(notes, k: int) -> bool:

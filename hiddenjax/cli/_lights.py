@@ -16,8 +16,6 @@ from ..scene import Scene
 from ..transport import render_point_lights
 from ._common import IMAGE_HELP, _output, photo_options
 
-FALLOFF_LIMIT = 0.1  # log radiance drawn at full colour in the picture's falloff panel (about 10%)
-
 
 def add_parsers(sub) -> None:
     """This module's subcommand(s) of `hiddenjax`."""
@@ -192,8 +190,9 @@ def lights(args) -> dict:
                   (f"fitted: {len(fit.positions)} light(s) + ambient", model, "radiance", white),
                   ("|fitted - photo|", np.where(inner, np.abs(model - grey), 0.0), "map")]
         if fit.falloff is not None:  # the lamps' falloff against the photo's brightness: what the warnings measure
-            panels.append((f"falloff fit - photo, log\n(+-{FALLOFF_LIMIT:g}; grey: not fitted)",
-                           fit.falloff.residual_image(), "signed", FALLOFF_LIMIT))
+            falloff = fit.falloff.residual_image()
+            limit = max(float(np.nanpercentile(np.abs(falloff), 99)), 1e-4)  # noise, or a shape, at full colour
+            panels.append((f"falloff fit - photo, log\n(+-{limit:.2g}; grey: not fitted)", falloff, "signed", limit))
         io.contact_sheet(png, panels, height=200, columns=len(panels))
     io.write_text(out, json.dumps(results, indent=2))
     for k, (p, i, u) in enumerate(zip(fit.positions, fit.intensities, seen)):

@@ -355,7 +355,9 @@ def _falloff_notes(found, plate: bool = False) -> list[str]:
     smooth, not rough: it leaves the correlated residual above (66-260 pixels on eight satin desks).
     A clean plate took the wood's median direction error from 3.96 to 2.97 degrees only (the
     falloff still reads the pattern's slow part) and made the satin desks' worse, so the advice
-    is a plain matte sheet under the objects first (docs: experiments, shadow edges)."""
+    is a plain matte sheet under the objects first (docs: experiments, shadow edges); for a glossy
+    receiver, to declare it (`fit_falloff`'s glossy receivers: the same satin desks' lamps 0.18
+    degrees off in the median)."""
     notes = []
     if found.noise > TEXTURE_NOISE:
         notes.append(f"the receiver's brightness varies by {100 * found.noise:.0f}% from pixel to pixel about the lamps' "
@@ -369,7 +371,11 @@ def _falloff_notes(found, plate: bool = False) -> list[str]:
                      "the fitted lamps, tone curve and vignetting explain the photo): its brightness holds light or "
                      "structure the fit does not place (a lamp lost, more lamps than --count, light the scene lacks, "
                      "a textured or glossy receiver); the lights may be farther off than their cones and intervals say" +
-                     f". Where the receiver is glossy or textured, {SHEET_ADVICE}")
+                     (f"; the glossy receiver was shaded with a roughness of {found.roughness:.2g}: is its index of "
+                      "refraction (ior) right?" if found.roughness is not None else
+                      ". Where the receiver is glossy (a satin or varnished table), declare it, its roughness a guess "
+                      f"(Surface(roughness=0.3), roughness = 0.3 in the scene file): the fit reads its highlight; where "
+                      f"it is textured, {SHEET_ADVICE}"))
     if not TONE_POWER[0] * 1.01 < found.beta < TONE_POWER[1] * 0.99:
         notes.append(f"the tone curve's fitted power {found.beta:.3g} is at an end of the range searched "
                      f"({TONE_POWER[0]}-{TONE_POWER[1]}, gamma {1 / TONE_POWER[1]:.2g}-{1 / TONE_POWER[0]:.2g}): no "

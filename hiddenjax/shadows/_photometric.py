@@ -112,7 +112,11 @@ highlight, which a matte `h_l` reads as falloff. Given the camera (`fit_falloff(
 
 the coated base (`s = 1 / ((1 - F_dr) eta^2)`, `t` the layer's transmission) and the GGX lobe `f_s`
 (`scene._gloss`), `v` towards the camera and `w` towards the light: the highlight then moves with
-the light and places it. The objects' bounce light stays diffuse.
+the light and places it. The layer's roughness sets the highlight's width and is read from it: the
+scene's value is a start (a search over `ROUGHNESS_GRID` values, log spaced over 0.05-1, before and
+after the scan), then its log is fitted with the rest in the joint fit; the layer's tables are
+interpolated in log roughness between that grid's (`_gloss`). Its index of refraction sets the
+highlight's strength and is taken as the scene gives it. The objects' bounce light stays diffuse.
 """
 
 import copy
@@ -567,9 +571,10 @@ def fit_falloff(image, scene: Scene, shadows, positions, shading, prior, *, box=
     was built with); with it, the pixels on a glossy surface (`Surface(roughness=...)`: a satin or
     varnished table) are shaded with its lobe and coated base seen from it (`glossy_gain`, module
     docstring); without it, or where every surface is matte, the receiver is taken as matte. Their
-    roughness is fitted (`fit_roughness`, the default: the scene's value says the table is glossy, its
-    index of refraction is kept) before and after the scan and after the joint fit, which is settled
-    again where it moved; the positions' covariance holds it fixed.
+    roughness is fitted (`fit_roughness`, the default; the scene's value only says the table is glossy,
+    its index of refraction is kept): a search over `ROUGHNESS_GRID` values before and after the scan,
+    then its log as one more parameter of the joint fit, so that the positions' covariance is
+    marginalized over it too; `False` holds the scene's.
     """
     tone = _checked_tone(tone)
     positions = np.array(positions, np.float64)
