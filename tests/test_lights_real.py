@@ -2,6 +2,7 @@
 smooth shading, the distance from its falloff through a tone curve and vignetting, the fit's
 uncertainty, and `hiddenjax lights` on a faulty 8-bit photo."""
 
+import contextlib
 import json
 from types import SimpleNamespace
 
@@ -619,6 +620,19 @@ def test_a_declared_satin_table_places_the_lamp_by_its_highlight(tmp_path, capsy
     assert seen < 1 and abs(light["distance"] / np.linalg.norm(true) - 1) < 0.03 and not found["warnings"], found
     assert abs(found["camera_response"]["roughness"] / 0.25 - 1) < 0.1, found["camera_response"]
     capsys.readouterr()
+
+
+def test_a_glossy_scene_fitted_by_its_shadows_alone_is_told_so():
+    """Without the falloff fit (a calibrated photo: `shading=None`), a declared glossy table is
+    shaded as matte: the fit says so, and says nothing of it for the matte desk."""
+    scene, camera = desk()
+    satin = hj.Scene([hj.Surface(scene[0].mesh, 0.6, roughness=0.25), *list(scene)[1:]])
+    photo = hj.render_point_lights(scene, camera, LIGHT[None], [0.05])
+    for model, glossy in ((satin, True), (scene, False)):
+        with pytest.warns() if glossy else contextlib.nullcontext():
+            fit = sh.fit_lights(photo, model, camera, LIGHT[None] + 0.02, polish=False, steps=0)
+        told = [note for note in fit.warnings if "shaded as matte" in note]
+        assert bool(told) == glossy and all("shading='smooth'" in note for note in told), fit.warnings
 
 
 def _unit_rows(v):
