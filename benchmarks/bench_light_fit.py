@@ -38,12 +38,12 @@ warning names it or the whole fit (the summary counts the lights warned of, and 
 their region with no warning); beside it the plain fit (`fit_lights` with neither) on the same
 photos. `--seed` draws other desks (lamps, objects' errors, gammas). `--table wood` puts the desks
 on a matte wood grain (2 cm stripes, albedo 0.4-0.8 around 0.6), `--table satin` under a glossy
-layer (GGX roughness 0.25, index 1.5); the fit is told the plain desk (with `--told-gloss`, the
-satin desk's layer of a guessed roughness, `--told-gloss 0.4`, as a scene file's `roughness = 0.4`
-declares it, which the fit refines), and the same seed draws the same lamps, errors and gammas on every table. `--plate` adds a third fit from each
-photo and its clean plate (the desk without the objects, through the same camera faults):
-`fit_lights(clearance=0.005, shading="smooth", reference=plate)`, as `hiddenjax lights
---reference` does.
+layer (GGX roughness 0.25, index 1.5); the fit is told the plain desk (with `--told-gloss 0.4`,
+a glossy desk of a guessed roughness, as a scene file's `roughness = 0.4` declares it, which the
+fit refines), and the same seed draws the same lamps, errors and gammas on every table. `--plate`
+adds a third fit from each photo and its clean plate (the desk without the objects, through the
+same camera faults): `fit_lights(clearance=0.005, shading="smooth", reference=plate)`, as
+`hiddenjax lights --reference` does.
 """
 
 import argparse
@@ -329,6 +329,11 @@ def main(argv=None):
     if args.part == "faulty":
         if args.told_gloss is not None and args.table != "satin":
             ap.error("--told-gloss declares the satin table's layer: use it with --table satin")
+        if args.told_gloss is not None:
+            try:
+                hj.scene._gloss.check_gloss(args.told_gloss, 1.5)
+            except ValueError as e:
+                ap.error(f"--told-gloss: {e}")
         rows = _faulty(2 if args.quick else args.cases, render, table, np.random.default_rng(args.seed), args.table,
                        args.plate, args.told_gloss)
         results = dict(photos=photos, seed=args.seed, table=args.table, told_gloss=args.told_gloss, faulty=rows,
