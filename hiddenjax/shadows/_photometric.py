@@ -148,6 +148,7 @@ BOUNCE_SHARE = 2e-3  # a pixel whose objects' bounce light is more than this sha
 BOUNCE_BLUR = 2.0  # pixels: the bounce light's Monte Carlo estimate is smoothed over this (a Gaussian sigma)
 NOISE_WIDTH = 8.0  # pixels: the photo's noise is measured over this (a Gaussian sigma of the squared residual)
 ROUGHNESS_GRID = 14  # roughnesses tried for a glossy receiver, log spaced over the GGX range (steps of 1.26x)
+_ROUGHNESSES = np.geomspace(MIN_ROUGHNESS, MAX_ROUGHNESS, ROUGHNESS_GRID)
 
 
 class DistanceScan(NamedTuple):
@@ -228,13 +229,13 @@ class _Brightness:
 
     def __init__(self, image, scene: Scene, shadows, positions, shading, camera: Camera | None = None):
         self.y = np.asarray(shadows.image_to_rows(image), np.float64)
-        self.glossy, self.view = _glossy_receivers(scene, shadows, camera)
         self.u = np.asarray(shadows.image_to_rows(shading), np.float64)
         self.top = float(np.max(np.asarray(image)))
         self.shape, self.shadows = shadows.image_shape, shadows
         observed = [surface for surface in scene if surface.observe]
         self.caster = RayCaster(Scene(observed) if observed else scene)  # the falloff alone: no occluders
         self.occluded = RayCaster(scene)
+        self.glossy, self.view = _glossy_receivers(scene, shadows, camera, self.occluded)
         positions = np.array(positions, np.float64)
         self.anchor, self.start, self._last, self._matte = occluder_centre(scene), positions, None, None
         bare = _unit_images(self.caster, self.shadows, positions)  # (L, P): the direct light at the start
@@ -349,7 +350,7 @@ def _gloss(roughness: float, ior: float) -> Gloss:
 @functools.lru_cache(maxsize=64)
 def _grid_gloss(k: int, ior: float) -> Gloss:
     """`Gloss` at the `k`-th roughness of `ROUGHNESS_GRID` (log spaced over the GGX range)."""
-    return Gloss(float(np.geomspace(MIN_ROUGHNESS, MAX_ROUGHNESS, ROUGHNESS_GRID)[k]), ior)
+    return Gloss(float(_ROUGHNESSES[k]), ior)
 
 
 def _fit_roughness(b: _Brightness, positions, params, tone):
@@ -358,7 +359,7 @@ def _fit_roughness(b: _Brightness, positions, params, tone):
     parabola in log roughness through the least and its neighbours; `b` is left shaded with it.
     Returns `_log_fit`'s `(params, loss, residual)` there."""
     lights = np.arange(len(positions))
-    grid = np.geomspace(MIN_ROUGHNESS, MAX_ROUGHNESS, ROUGHNESS_GRID)
+    grid = _ROUGHNESSES
     losses = []
     for r in grid:
         b.set_roughness(float(r))
@@ -373,15 +374,16 @@ def _fit_roughness(b: _Brightness, positions, params, tone):
     return _log_fit(b.images(positions, lights), b.log_y, b.r2, params, tone)
 
 
-def _glossy_receivers(scene: Scene, shadows, camera: Camera | None):
+def _glossy_receivers(scene: Scene, shadows, camera: Camera | None, caster: RayCaster):
     """`([(pixels (P,) bool, Gloss)], view (P, 3))`: the fitted pixels on each glossy surface of `scene`
-    and the unit directions from them to `camera`; `([], None)` without a camera or a glossy surface."""
+    (its `caster` finds them) and the unit directions from them to `camera`; `([], None)` without a
+    camera or a glossy surface."""
     if camera is None or not any(surface.observe and surface.gloss is not None for surface in scene):
         return [], None
     if (camera.height, camera.width) != tuple(shadows.image_shape):
         raise ValueError(f"the camera's image {(camera.height, camera.width)} is not the fitted pixels' "
                          f"{tuple(shadows.image_shape)}: give the camera the ShadowScene was built with")
-    surface = pixel_centre_hits(RayCaster(scene), camera).surface[np.asarray(shadows.pixels)]
+    surface = pixel_centre_hits(caster, camera).surface[np.asarray(shadows.pixels)]
     view = np.asarray(camera.origin, np.float64) - np.asarray(shadows.points, np.float64)
     view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-300)
     glossy = [(surface == k, s.gloss) for k, s in enumerate(scene) if s.observe and s.gloss is not None]
