@@ -69,7 +69,7 @@ def photograph(width: int, height: int, objects, lamps, satin: bool = False) -> 
         mesh.apply_translation(place)
         surfaces.append(hj.Surface(mesh, 0.5, observe=False))
     camera = hj.Camera.look_at(CAMERA["origin"], CAMERA["target"], [0, 1, 0], CAMERA["fov"], width, height)
-    if satin:  # Embree's point-light renderer is diffuse: the glossy desk goes to Mitsuba
+    if satin:  # a path tracer, not the model fitted: Mitsuba's roughplastic with its interreflections
         from hiddenjax.transport._mitsuba import render_point_lights_mitsuba
 
         radiance = render_point_lights_mitsuba(hj.Scene(surfaces), camera, lamps, [0.05] * len(lamps), max_depth=4,

@@ -108,3 +108,18 @@ ior = 1.4
         hj.reference_render(glossy, camera, np.ones((8, 16)))
     with pytest.raises(ValueError, match="sigmoid-shadow transport models diffuse"):
         hj.shadows.SoftTransport.from_scene(glossy, camera, hj.EnvGrid(4, 8))
+
+
+def test_a_scene_says_whether_it_observes_gloss_and_takes_a_read_roughness(plane_only):
+    """`Scene.observes_gloss` is about the observed surfaces only (a glossy occluder is not a glossy
+    receiver); `with_roughness` sets the observed glossy surfaces' roughness, keeps their index and
+    leaves the others and the scene it came from as they were."""
+    scene, _ = plane_only
+    mesh = scene[0].mesh
+    table, cup = hj.Surface(mesh, 0.5, roughness=0.3, ior=1.4), hj.Surface(mesh, 0.5, observe=False, roughness=0.2)
+    assert hj.Scene([table, cup]).observes_gloss and not hj.Scene([hj.Surface(mesh, 0.5), cup]).observes_gloss
+    read = hj.Scene([table, cup, scene[0]]).with_roughness(0.45)
+    assert (read[0].gloss.roughness, read[0].gloss.ior) == (0.45, 1.4) and read[1] is cup and read[2] is scene[0]
+    assert table.gloss.roughness == 0.3 and read[0].mesh is mesh
+    with pytest.raises(ValueError, match="roughness"):
+        hj.Scene([table]).with_roughness(2.0)

@@ -15,7 +15,7 @@ import scipy.stats
 import hiddenjax as hj
 from hiddenjax import shadows as sh
 from hiddenjax.cli import main
-from hiddenjax.scene._gloss import interface_albedo
+from hiddenjax.scene._gloss import glossy_gain, interface_albedo
 
 LIGHT = np.array([0.25, 0.45, -0.3])
 
@@ -551,7 +551,7 @@ def test_a_glossy_receivers_gain_is_reciprocal_and_conserves_energy():
     the interface's albedo that `scene._gloss` gets by sampling half vectors (measured: within
     3e-5 of 0.0392), the whole BRDF less than 1."""
     gloss = hj.Surface(hj.scene.primitive("plane", extent=(1.0, 1.0)), 0.6, roughness=0.25, ior=1.5).gloss
-    gain = sh._photometric.glossy_gain
+    gain = glossy_gain
     up = lambda k: np.tile([0.0, 1.0, 0.0], (k, 1))
 
     def seen(view, light):  # the gain at points lit from directions `light (K, 3)` (one lamp at the origin)

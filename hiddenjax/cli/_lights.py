@@ -159,10 +159,12 @@ def lights(args) -> dict:
     if shading == "smooth" and reference is None:  # the picture's model: the photo's smooth shading (or the clean
         reference = _shadows.smooth_shading(image, np.asarray(shadows.pixels))  # plate) times the shadows' ratio
     grey = image.mean(axis=-1) if image.ndim == 3 else image
-    model = np.asarray(render_point_lights(spec.scene, camera, fit.positions, fit.intensities, pixel_samples=4))
+    rough = None if fit.falloff is None else fit.falloff.roughness  # a glossy table as the falloff read it
+    seen_scene = spec.scene if rough is None else spec.scene.with_roughness(rough)
+    model = np.asarray(render_point_lights(seen_scene, camera, fit.positions, fit.intensities, pixel_samples=4))
     model = model + fit.ambient
     if reference is not None:  # the reference times the ratio of the scene with and without its occluders
-        bare = Scene([surface for surface in spec.scene if surface.observe])
+        bare = Scene([surface for surface in seen_scene if surface.observe])
         plain = np.asarray(render_point_lights(bare, camera, fit.positions, fit.intensities, pixel_samples=4))
         plain = plain + fit.ambient
         ratio = np.divide(model, plain, out=np.zeros_like(model), where=plain > 0)

@@ -142,3 +142,21 @@ class Gloss:
 
     def __repr__(self):
         return f"Gloss(roughness={self.roughness:g}, ior={self.ior:g})"
+
+
+def glossy_gain(x, n, rho, view, gloss, p) -> np.ndarray:
+    """`(N,)`: a glossy receiver's direct light from a point light at `p` over the matte `rho/pi n.w / d^2`,
+
+        g = s t(n.v) t(n.w) + pi f_s(v, w) (n.w) / (rho n.w),
+
+    at points `x (N, 3)` (normals `n`, base albedo `rho`, unit `view` towards the camera), with the
+    coated base's scale `s` and transmission `t` and the lobe `f_s` of `gloss` (`scene._gloss`: Mitsuba's
+    `roughplastic`); 1 where the light is below the surface (the matte shading is 0 there)."""
+    w = np.asarray(p, np.float64) - x
+    w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-300)
+    h = view + w
+    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
+    mu, mu_v = np.sum(n * w, axis=1), np.sum(n * view, axis=1)
+    lobe = specular(mu_v, mu, np.sum(n * h, axis=1), np.sum(view * h, axis=1), gloss.roughness, gloss.ior)
+    gain = gloss.diffuse_scale * gloss.t(mu_v) * gloss.t(mu) + np.pi * lobe / np.maximum(rho * mu, 1e-12)
+    return np.where(mu > 0, gain, 1.0)

@@ -1,5 +1,6 @@
 """Diffuse surfaces and scenes (docs/conventions.md, "Surfaces")."""
 
+import copy
 import functools
 from collections.abc import Sequence
 from pathlib import Path
@@ -161,6 +162,23 @@ class Scene:
     def glossy(self) -> bool:
         """Whether any surface has a glossy lobe (what the diffuse-only renderers refuse)."""
         return any(s.gloss is not None for s in self.surfaces)
+
+    @property
+    def observes_gloss(self) -> bool:
+        """Whether a surface the camera's pixels observe (`observe=True`) is glossy: a receiver whose
+        highlight a fit to the photo's brightness must model."""
+        return any(s.observe and s.gloss is not None for s in self.surfaces)
+
+    def with_roughness(self, roughness: float) -> "Scene":
+        """This scene with every observed glossy surface at GGX `roughness` (each keeps its index of
+        refraction): the receivers as a fit read their roughness from the photo."""
+        surfaces = []
+        for s in self.surfaces:
+            if s.observe and s.gloss is not None:
+                s = copy.copy(s)
+                s.gloss = Gloss(roughness, s.gloss.ior)
+            surfaces.append(s)
+        return Scene(surfaces)
 
     def bounds(self) -> np.ndarray:
         """`(2, 3)` axis-aligned bounds of all surfaces."""

@@ -256,7 +256,7 @@ def fit_lights(
     notes = _distrust(positions, a, float(scale), None if searched is None else searched.box, shading == "smooth")
     if found is not None:
         notes += _falloff_notes(found, plate=plate)
-    elif any(surface.observe and surface.gloss is not None for surface in scene):
+    elif scene.observes_gloss:
         notes.append("the scene's glossy surfaces were shaded as matte: the glossy receiver's model is in the falloff "
                      "fit of a camera's photo (shading='smooth', hiddenjax lights --shading smooth); this fit reads "
                      "the shadows alone, and a highlight in their neighbourhood pulls them")

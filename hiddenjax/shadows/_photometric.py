@@ -128,7 +128,7 @@ import numpy as np
 import scipy.optimize
 
 from ..scene import Camera, Scene, Surface
-from ..scene._gloss import MAX_ROUGHNESS, MIN_ROUGHNESS, Gloss, specular
+from ..scene._gloss import MAX_ROUGHNESS, MIN_ROUGHNESS, Gloss, glossy_gain
 from ..transport._embree import RayCaster, pixel_centre_hits
 from ._polish import diffuse_bounce, residual_correlation
 from ._search import _unit_images, occluder_centre
@@ -378,7 +378,7 @@ def _glossy_receivers(scene: Scene, shadows, camera: Camera | None, caster: RayC
     """`([(pixels (P,) bool, Gloss)], view (P, 3))`: the fitted pixels on each glossy surface of `scene`
     (its `caster` finds them) and the unit directions from them to `camera`; `([], None)` without a
     camera or a glossy surface."""
-    if camera is None or not any(surface.observe and surface.gloss is not None for surface in scene):
+    if camera is None or not scene.observes_gloss:
         return [], None
     if (camera.height, camera.width) != tuple(shadows.image_shape):
         raise ValueError(f"the camera's image {(camera.height, camera.width)} is not the fitted pixels' "
@@ -388,24 +388,6 @@ def _glossy_receivers(scene: Scene, shadows, camera: Camera | None, caster: RayC
     view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-300)
     glossy = [(surface == k, s.gloss) for k, s in enumerate(scene) if s.observe and s.gloss is not None]
     return [(on, gloss) for on, gloss in glossy if on.any()], view
-
-
-def glossy_gain(x, n, rho, view, gloss, p) -> np.ndarray:
-    """`(N,)`: a glossy receiver's direct light from a point light at `p` over the matte `rho/pi n.w / d^2`,
-
-        g = s t(n.v) t(n.w) + pi f_s(v, w) (n.w) / (rho n.w),
-
-    at points `x (N, 3)` (normals `n`, base albedo `rho`, unit `view` towards the camera), with the
-    coated base's scale `s` and transmission `t` and the lobe `f_s` of `gloss` (`scene._gloss`: Mitsuba's
-    `roughplastic`); 1 where the light is below the surface (the matte shading is 0 there)."""
-    w = np.asarray(p, np.float64) - x
-    w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-300)
-    h = view + w
-    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
-    mu, mu_v = np.sum(n * w, axis=1), np.sum(n * view, axis=1)
-    lobe = specular(mu_v, mu, np.sum(n * h, axis=1), np.sum(view * h, axis=1), gloss.roughness, gloss.ior)
-    gain = gloss.diffuse_scale * gloss.t(mu_v) * gloss.t(mu) + np.pi * lobe / np.maximum(rho * mu, 1e-12)
-    return np.where(mu > 0, gain, 1.0)
 
 
 def _log_residual(q, h, log_y, r2):

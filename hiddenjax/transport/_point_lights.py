@@ -6,6 +6,11 @@ sample `x` with normal `n` and albedo `rho` receives, from a light of intensity 
 (eq. 4.11 without the ambient term). A distant light of power `s` (radiance integrated over its
 solid angle) from the direction `w` gives `rho/pi * s * max(0, n.w) * V(x, w)`: the limit of a
 map cell `j` of radiance `s / Omega_j` as the cell shrinks around `w` (eq. 5.1).
+
+A glossy surface (`Surface(roughness=...)`, Mitsuba's `roughplastic`) seen by the camera reflects a
+point light's direct light by its BRDF instead, the matte term times `glossy_gain` (`scene._gloss`:
+the coated base and the GGX lobe, seen along the pixel's ray): its highlight moves with the light
+and the camera.
 """
 
 import copy
@@ -13,6 +18,7 @@ import copy
 import numpy as np
 
 from ..scene import Camera, MeasuredReflectance, Scene, SpecularLobe
+from ..scene._gloss import glossy_gain
 from ..scene._sampling import cosine_directions, stratified_square
 from ._build import _Points
 from ._embree import RayCaster, pixel_centre_hits, primary_hits
@@ -36,21 +42,32 @@ def render_point_lights(
 ) -> np.ndarray:
     """`(H, W)` float32 radiance of `scene` lit by point lights `(L, 3)`, hard shadows, box filter.
 
-    `intensities (L,)` in W/sr (default 1). Pixels that see no surface are 0. `bounces` (0, 1 or 2)
+    `intensities (L,)` in W/sr (default 1). Pixels that see no surface are 0. A glossy surface's
+    direct light is its BRDF's, seen from the camera (module docstring). `bounces` (0, 1 or 2)
     adds that many diffuse interreflections (`interreflected`, `bounce_rays` rays per footprint
-    point): a path-traced estimate of the light the surfaces throw on each other.
+    point): a path-traced estimate of the light the surfaces throw on each other; a glossy scene's
+    interreflections are not diffuse, so there `bounces` must be 0 (Mitsuba's path tracer,
+    `transport._mitsuba.render_point_lights_mitsuba`, renders them).
     """
     lights, intensities = check_lights(lights, intensities)
     if bounces not in (0, 1, 2) or bounce_rays < 1 or int(bounce_rays) != bounce_rays:
         raise ValueError(f"bounces must be 0, 1 or 2 and bounce_rays a whole number >= 1, got {bounces!r}, "
                          f"{bounce_rays!r}")
+    if bounces and scene.glossy:
+        raise ValueError(f"bounces={bounces}: a glossy surface's interreflections are not diffuse; use bounces=0 "
+                         "(direct light), or Mitsuba's path tracer (transport._mitsuba.render_point_lights_mitsuba)")
     caster = RayCaster(scene)
-    hits, _ = primary_hits(caster, camera, pixel_samples, seed)
+    hits, directions = primary_hits(caster, camera, pixel_samples, seed)
     hit = hits.surface >= 0
     x = hits.position[hit] + caster.offset * hits.normal[hit]
     n, albedo = hits.normal[hit], hits.albedo[hit]
     out = np.zeros(len(hits.surface))
-    out[hit] = direct_light(caster, x, n, albedo, lights, intensities)
+    glossy = [(hits.surface[hit] == k, s.gloss) for k, s in enumerate(scene) if s.gloss is not None]
+    for light, power in zip(lights, intensities):
+        direct = direct_images(caster, x, n, albedo, light)
+        for on, gloss in glossy:  # seen along the pixel's ray: the view is its reverse
+            direct[on] *= glossy_gain(x[on], n[on], albedo[on], -directions[hit][on], gloss, light)
+        out[hit] += power * direct
     if bounces:
         out[hit] += interreflected(caster, x, n, albedo, lights, intensities, bounce_rays, seed + 1, bounces)
     return out.reshape(camera.height, camera.width, pixel_samples).mean(axis=2).astype(np.float32)
