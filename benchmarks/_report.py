@@ -13,13 +13,13 @@ class Table(list):
         print("\n" + "\n".join("  ".join(c.ljust(w) for c, w in zip(r, width)) for r in self))
 
 
-def finish_plot(fig, ax, path, xlabel: str, ylabel: str, title: str, grid: bool = True):
-    """Label, legend and save a figure (PNG, 120 dpi)."""
+def finish_plot(fig, ax, path, xlabel: str, ylabel: str, title: str, grid: bool = True, legend: dict | None = None):
+    """Label, legend (`legend`: `ax.legend`'s keywords) and save a figure (PNG, 120 dpi)."""
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     if grid:
         ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
+    ax.legend(**(legend or {}))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
