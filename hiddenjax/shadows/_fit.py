@@ -19,7 +19,7 @@ import optimistix as optx
 from ..scene import Camera, Scene
 from ._polish import polish_lights
 from ._photometric import CAMERA_TONE, TONE_POWER, FalloffFit, _checked_tone, fit_falloff
-from ._receiver import object_clearance, plate_detextured, smooth_shading
+from ._receiver import object_clearance, pixels_spanned, plate_detextured, smooth_shading
 from ._search import (_fit, _occluder_bounds, _unit_images, check_outside, hard_fit, occluder_centre,
                       positive_reference, search_lights)
 from ._shading import ShadowScene, light_images
@@ -275,8 +275,7 @@ def _shadow_edge(scene: Scene, camera: Camera, clearance) -> int:
     if not clearance:
         return 0
     depth = float((occluder_centre(scene) - np.asarray(camera.origin, np.float64)) @ np.asarray(camera.rotation, np.float64)[2])
-    focal = float(np.max(np.asarray(camera.intrinsics)[:2]))
-    pixels = clearance * focal / max(depth, 1e-9)
+    pixels = pixels_spanned(camera, clearance, depth)
     return int(np.ceil(pixels)) if pixels >= 1 else 0
 
 

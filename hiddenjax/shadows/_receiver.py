@@ -47,6 +47,12 @@ SHADING_TRIM = 2.5  # robust standard deviations off the fit that a pixel may be
 OBJECT_MARGIN = 0.005  # metres: how far a real object may stand from where the scene file puts it
 
 
+def pixels_spanned(camera: Camera, metres: float, depth: float) -> float:
+    """`metres f / depth`: how many pixels a length `metres` spans at camera-space depth `depth`
+    (`f` the larger focal length in pixels)."""
+    return metres * float(np.max(np.asarray(camera.intrinsics)[:2])) / max(float(depth), 1e-9)
+
+
 def object_clearance(scene: Scene, camera: Camera, margin: float = OBJECT_MARGIN, pixel_samples: int = 4) -> np.ndarray:
     """`(H, W)` bool: the pixels at least `margin` metres (at the object's depth) from every occluder's
     modelled silhouette (module docstring); all True when the scene has no occluder or `margin` is 0."""
@@ -63,8 +69,7 @@ def object_clearance(scene: Scene, camera: Camera, margin: float = OBJECT_MARGIN
     if not silhouette.any():
         return keep
     depth = (hits.position[on] - np.asarray(camera.origin, np.float64)) @ np.asarray(camera.rotation, np.float64)[2]
-    focal = float(np.max(np.asarray(camera.intrinsics)[:2]))
-    radius = int(np.ceil(margin * focal / max(float(np.min(depth)), 1e-9))) if margin > 0 else 0
+    radius = int(np.ceil(pixels_spanned(camera, margin, np.min(depth)))) if margin > 0 else 0
     if radius > 0:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
         silhouette = cv2.dilate(silhouette.astype(np.uint8), kernel).astype(bool)
