@@ -10,7 +10,7 @@ from tqdm.auto import tqdm
 from .._jit import host_array
 from ..scene import Camera, EnvGrid, Scene
 from ..scene._sampling import cosine_directions
-from ._direct import DirectLighting
+from ._direct import SUB, DirectLighting, SubPoints
 from ._embree import Hits, primary_hits
 from ._matrix import TransportMatrix
 from ._memory import format_bytes, parse_memory
@@ -180,6 +180,10 @@ class BuildPlan:
     def __init__(self, scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder, adaptive=True):
         self.lighting = DirectLighting(scene, grid, samples, adaptive)
         self.H, self.W, self.S = camera.height, camera.width, pixel_samples
+        # the camera as numpy (its rays through the sub-points, chunk by chunk) and the seed
+        self.view = (np.asarray(camera.origin, np.float64), np.asarray(camera.rotation, np.float64),
+                     np.asarray(camera.intrinsics, np.float64), camera.width)
+        self.seed = seed
         hits, directions = primary_hits(self.lighting.caster, camera, self.S, seed)
         self.pixels = _observed_pixels(scene, hits, (self.H, self.W), self.S, mask, keep_occluder)
         self.P, self.N = len(self.pixels), grid.size
@@ -189,8 +193,16 @@ class BuildPlan:
         self.starts = list(range(0, self.P, self.chunk))
 
     def chunk_points(self, i) -> "_Points":
+        """The footprint points of chunk `i`; with `DirectLighting.sub_footprint` and more than one
+        footprint sample per pixel, each point's `SUB` sub-points too (`pts.sub`, from the stream
+        `(seed, 3, i)`). With one sample a pixel is that one point: its rays keep to it."""
         start = self.starts[i]
-        return self.points.take(slice(start * self.S, (start + self.chunk) * self.S))
+        pts = self.points.take(slice(start * self.S, (start + self.chunk) * self.S))
+        if self.lighting.sub_footprint and self.S > 1:
+            pixels = self.pixels[start : start + self.chunk]
+            pts.sub = _sub_points(self.lighting.caster, self.view, pixels, self.S,
+                                  np.random.default_rng([self.seed, 3, i]))
+        return pts
 
     def albedo(self) -> np.ndarray:
         """Mean footprint albedo of each observed pixel, `(P,)`."""
@@ -246,9 +258,35 @@ def _observed_pixels(scene, hits: Hits, shape, S, mask, keep_occluder) -> np.nda
     return np.nonzero(ok)[0]
 
 
+def _sub_points(caster, view, pixels, S: int, rng) -> "SubPoints":
+    """`SUB` jittered points in each footprint sample's stratum of `pixels` (the `k x m` cells of
+    `stratified_square`, each split 2 x 2), hit by the rays of the camera `view = (origin, rotation,
+    intrinsics, width)`: `(len(pixels) * S, SUB)` each."""
+    origin, rotation, intrinsics, width = view
+    k = max(d for d in range(1, int(np.sqrt(S)) + 1) if S % d == 0)
+    m = S // k
+    row, col = np.divmod(np.arange(S), m)
+    a, b = np.divmod(np.arange(SUB), 2)
+    u = np.stack([(row[:, None] + (a[None, :] + rng.random((len(pixels), S, SUB))) / 2) / k,
+                  (col[:, None] + (b[None, :] + rng.random((len(pixels), S, SUB))) / 2) / m], axis=-1)
+    r, c = np.divmod(np.asarray(pixels), width)
+    image = np.stack([r, c], -1)[:, None, None, :] + u  # (p, S, SUB, 2) (row, col)
+    fx, fy, cx, cy = intrinsics
+    cam = np.stack([(image[..., 1] - cx) / fx, (image[..., 0] - cy) / fy, np.ones(image.shape[:-1])], -1)
+    d = (cam @ rotation).reshape(-1, 3)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    hits = caster.intersect(np.broadcast_to(origin, d.shape), d)
+    shape = (len(pixels) * S, SUB)
+    return SubPoints((hits.position + caster.offset * hits.normal).reshape(*shape, 3), hits.normal.reshape(*shape, 3),
+                     hits.surface.reshape(shape), hits.albedo.reshape(shape))
+
+
 class _Points:
     """Footprint points as flat arrays: position (offset off the surface), normal, surface, albedo,
-    and the unit direction towards the camera (`view`)."""
+    and the unit direction towards the camera (`view`); `sub`, where the build uses them, each
+    point's sub-points (`SubPoints`)."""
+
+    sub = None
 
     def __init__(self, hits: Hits, sel, offset: float, directions):
         self.normal = hits.normal[sel]
@@ -273,7 +311,7 @@ def _chunk_rows(lighting: DirectLighting, pts: _Points, S: int, bounces: int, pa
     """
     seed, chunk = seed
     radiance, rays = lighting.radiance_rows(pts.position, pts.normal, pts.surface, pts.albedo, pts.view,
-                                            np.random.default_rng([seed, 1, chunk]), group=S)
+                                            np.random.default_rng([seed, 1, chunk]), group=S, sub=pts.sub)
     if bounces:
         indirect, more = _indirect(lighting, pts, bounces, paths, np.random.default_rng([seed, 2, chunk]))
         radiance += indirect

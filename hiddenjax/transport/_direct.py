@@ -24,6 +24,25 @@ always get them. The estimate is unbiased on the pairs that are refined; a pair 
 that all coarse rays call unoccluded (or occluded) keeps a bias of at most its occluded
 (unoccluded) part, measured in docs/experiments/transport-build.md.
 
+Sub-points (adaptive builds of diffuse scenes with two or more footprint samples per pixel,
+`samples` a multiple of `SUB`): every footprint point `x` (uniform in its stratum `R` of the
+pixel) carries `SUB` sub-points `y_a`, one uniform in each part of a 2 x 2 split of `R` (the
+camera's ray through it), and the adaptive build traces from them instead of from `x`: the coarse
+rays of a pixel start from its points' sub-points in turn, the outline's 16 from all of them (so
+a pixel's footprint is probed at 16 places), and a refined pair's `S` directions are handed to the
+sub-points by a random cyclic shift of an order that gives each `S / SUB` strata spread over the
+env pixel's rows and columns. The occluded part is
+
+    (Omega_j / S) sum_k (1 - V(y_k, w_k)) max(0, n_k . w_k) rho(y_k) / rho(x),
+
+over the draws the mean over `R` of `rho O(y)` divided by `rho(x)`, which the row multiplies back
+(the sub-points are together uniform in `R`, and the shift pairs every direction stratum with every
+part of `R` alike); `rho(x) U(x)` is the stratum's mean of `rho U` as before. A shadow edge across
+a footprint varies with the place as much as with the direction: with the rays at four places per
+footprint point, the refined pairs' estimate holds far less of the footprint's noise. The bias
+stays that of the pairs every coarse ray agrees on, now over `R` rather than at `x`: at most the
+pair's occluded (unoccluded) part, measured in docs/experiments/transport-build.md.
+
 Glossy surfaces (`Surface(roughness=...)`, `scene._gloss`) seen from a view direction `v`: the
 diffuse base weights each direction by `t(n.w) n.w` instead of `n.w` (its unoccluded part by a
 fixed quadrature per distinct normal, the occluded part by the same samples), and the specular lobe
@@ -43,6 +62,7 @@ from ._embree import RayCaster
 
 # Direction samples handled per vectorized block: bounds the temporaries to ~30 MB per thread.
 _BLOCK = 1 << 18
+SUB = 4  # sub-points per footprint point that the refined pairs' rays start from (adaptive builds)
 _LOBE_POINTS = 32  # glossy points per block of the lobe's quadrature: (32, N, 64) temporaries
 
 
@@ -76,6 +96,9 @@ class DirectLighting:
         self.self_shadowing = np.array([s.shadows_itself for s in scene])
         self.gloss = [s.gloss for s in scene]
         self.glossy = np.array([g is not None for g in self.gloss] + [False])  # index -1: a miss
+        # the refined pairs' rays start from sub-points of the footprint (module docstring): diffuse scenes,
+        # `samples` a multiple of SUB (each sub-point then takes as many of a pair's directions)
+        self.sub_footprint = self.adaptive and not scene.glossy and self.samples % SUB == 0
 
     def rows(self, x, n, surface, rng: np.random.Generator):
         """`E (M, N)` float64 for points `x (M, 3)` (already offset), unit normals `n (M, 3)`.
@@ -89,12 +112,13 @@ class DirectLighting:
         E[split.m, split.j] += split.delta  # (m, j) pairs are unique
         return E, split.rays
 
-    def radiance_rows(self, x, n, surface, albedo, view, rng: np.random.Generator, group: int = 1):
+    def radiance_rows(self, x, n, surface, albedo, view, rng: np.random.Generator, group: int = 1, sub=None):
         """Outgoing radiance per unit env radiance, `(M, N)`, of points seen from unit directions
         `view (M, 3)` (towards the camera): `albedo/pi E` on diffuse surfaces, the glossy material's
         diffuse base and lobe on glossy ones (module docstring). `group` consecutive points share one
-        pixel (its footprint samples): the lobe's unoccluded part is evaluated once per group."""
-        split = self.split_rows(x, n, surface, rng, view=view, group=group)
+        pixel (its footprint samples): the lobe's unoccluded part is evaluated once per group. `sub`:
+        the points' `SubPoints` (`split_rows`)."""
+        split = self.split_rows(x, n, surface, rng, view=view, group=group, sub=sub, albedo=albedo)
         E = split.closed[split.which]
         E[split.m, split.j] += split.delta
         out = (albedo / np.pi)[:, None] * E
@@ -179,7 +203,8 @@ class DirectLighting:
         """`(K, N)`: `integral over Omega_j of max(0, n.w) dw`, the unoccluded term of each normal."""
         return self._horizon(np.asarray(normals, dtype=np.float64))[1]
 
-    def split_rows(self, x, n, surface, rng: np.random.Generator, view=None, group: int = 1) -> "SplitRows":
+    def split_rows(self, x, n, surface, rng: np.random.Generator, view=None, group: int = 1, sub=None,
+                   albedo=None) -> "SplitRows":
         """`E = closed[which] + sparse(m, j, delta)`: the rows of `rows` as their two parts.
 
         `closed (K, N)` is the unoccluded closed form of the `K` distinct normals (`which (M,)`
@@ -195,8 +220,13 @@ class DirectLighting:
         pair is first traced with 4 rays per (pixel, env pixel), 16 more on the occluder's
         outline, and only where those disagree with the full `samples` per point (module docstring).
         Pairs found unoccluded are left out of `(m, j, delta)` (their `delta` is 0).
+
+        `sub` (`SubPoints`, with the points' `albedo`): the refined pairs' rays start from the points'
+        sub-points instead (module docstring, "Sub-points"); diffuse points only.
         """
         M, N, S = len(x), self.grid.size, self.samples
+        if sub is not None and (albedo is None or S % SUB or (view is not None and np.any(self.glossy[surface]))):
+            raise ValueError("sub-points need the points' albedo, diffuse points and samples a multiple of SUB")
         glossy = self.glossy[surface] if view is not None else np.zeros(M, bool)
         # Horizon classes and the closed-form term depend on the normal (and a glossy surface's
         # material) only: planar receivers share a handful of normals, so evaluate them once per key.
@@ -260,13 +290,27 @@ class DirectLighting:
         lobe_delta = np.zeros(len(m_idx)) if np.any(glossy) else None
         rays = 0
         refine = np.ones(len(m_idx), dtype=bool)  # the pairs estimated with `samples` directions per point
+        origins = None
+        if sub is not None and len(m_idx):
+            # the sub-point each direction stratum starts from: a random cyclic shift per pair of an order
+            # that gives every sub-point S/SUB strata spread over the split's rows and columns; the shift
+            # makes each stratum's sub-point uniform over the SUB parts, which is all unbiasedness needs
+            cols = S // max(d for d in range(1, int(np.sqrt(S)) + 1) if S % d == 0)
+            row, col = np.divmod(np.arange(S), cols)
+            order = ((col - row) % cols) % SUB if cols % SUB == 0 else np.arange(S) % SUB
+            sub_position = sub.position.reshape(-1, 3).astype(np.float32)
+            sub_normal = sub.normal.reshape(-1, 3).astype(np.float32)
+            sub_seen = sub.surface.reshape(-1) >= 0
+            sub_ratio = (sub.albedo / albedo[:, None]).reshape(-1)
+            sub_cones = self._cones(sub_position, sub.surface.reshape(-1))
+            origins = (sub_position, sub_normal, sub_seen, sub_cones)
         if self.adaptive and _rays_per_point(2, group) < S:
             easy = np.nonzero(~glossy[m_idx])[0]
             m, j = m_idx[easy], j_idx[easy]
-            verdict, outline, rays = self._coarse(x, n, m, j, cones, group, 2)
+            verdict, outline, rays = self._coarse(x, n, m, j, cones, group, 2, origins)
             check = np.nonzero((verdict != -1) & outline)[0]  # on the outline: 16 rays more
             if _rays_per_point(4, group) < S:
-                again, _, more = self._coarse(x, n, m[check], j[check], cones, group, 4)
+                again, _, more = self._coarse(x, n, m[check], j[check], cones, group, 4, origins)
                 verdict[check] = np.where(again == verdict[check], again, -1)
                 rays += more
             else:  # no fewer than the full samples: take them
@@ -280,6 +324,14 @@ class DirectLighting:
             at = pairs[start : start + per_block]
             m, j = m_idx[at], j_idx[at]
             w = self.grid.sample_directions(j[:, None], stratified_square(rng, len(m), S, np.float32))  # (K,S,3)
+            if sub is not None:  # each direction from one of the point's sub-points, S/SUB of them each
+                at_sub = m[:, None] * SUB + (order[None, :] + rng.integers(0, SUB, (len(m), 1))) % SUB  # (K, S)
+                cos = _dot(w, sub_normal[at_sub])
+                occluded, traced = self._trace_from(sub_position, at_sub, w, sub_cones, (cos > 0) & sub_seen[at_sub])
+                rays += traced
+                term = np.where(occluded, -np.maximum(cos, 0.0) * sub_ratio[at_sub], 0.0)
+                delta[at] = self.omega[j] / S * term.sum(axis=1)
+                continue
             cos = np.einsum("kc,ksc->ks", n[m], w)
             occluded, traced = self._trace(x, m, w, cones, cos > 0)
             rays += traced
@@ -315,7 +367,41 @@ class DirectLighting:
         occluded.reshape(-1)[at] = self.caster.occluded(x[m[at // w.shape[1]]], w.reshape(-1, 3)[at])
         return occluded, len(at)
 
-    def _coarse(self, x, n, m, j, cones, group: int, k: int):
+    def _cones(self, y, on):
+        """`[(active (Q,), axis (Q, 3), cos_alpha (Q,))]` per occluder that may shadow some of the points
+        `y (Q, 3)` float32 on the surfaces `on (Q,)`: the bounding cone seen from each point (as in
+        `split_rows`, its cosine lowered by 1e-6 for round-off)."""
+        cones = []
+        for k, (centre, radius) in enumerate(self.spheres):
+            active = (on != k) | self.self_shadowing[k]
+            if not np.any(active):
+                continue
+            v = centre.astype(np.float32) - y
+            dist = np.sqrt(_dot(v, v))
+            sin_a = np.where(dist > radius, radius / np.maximum(dist, 1e-30), 1.0)
+            cos_a = np.where(dist > radius, np.sqrt(np.maximum(1 - sin_a**2, 0.0)), -1.0)
+            cones.append((active, v / np.maximum(dist, 1e-30)[:, None], (cos_a - 1e-6).astype(np.float32),
+                          np.mean(active) < 0.5))
+        return cones
+
+    def _trace_from(self, y, at_sub, w, cones, facing):
+        """`(occluded (K, s), rays)`: Embree's verdict on the directions `w (K, s, 3)` from the points
+        `y[at_sub]` (`at_sub (K, s)`) where `facing`, traced only where a direction points into an
+        occluder's bounding cone seen from its origin (`cones`, `_cones` of `y`)."""
+        in_cone = np.zeros(w.shape[:2], dtype=bool)
+        flat_w, flat_sub, flat_in = w.reshape(-1, 3), at_sub.reshape(-1), in_cone.reshape(-1)
+        for active, axis, cos_alpha, few in cones:
+            if few:  # a surface that can shadow few of the points (the table under an object): those rays only
+                r = np.flatnonzero(active[flat_sub])
+                flat_in[r] |= _dot(flat_w[r], axis[flat_sub[r]]) >= cos_alpha[flat_sub[r]]
+            else:
+                in_cone |= active[at_sub] & (_dot(w, axis[at_sub]) >= cos_alpha[at_sub])
+        occluded = np.zeros(w.shape[:2], dtype=bool)
+        at = np.flatnonzero(in_cone & facing)
+        occluded.reshape(-1)[at] = self.caster.occluded(y[at_sub.reshape(-1)[at]], w.reshape(-1, 3)[at])
+        return occluded, len(at)
+
+    def _coarse(self, x, n, m, j, cones, group: int, k: int, origins=None):
         """`(verdict (K,), outline (K,), rays)` of the pairs `(m, j)` from `k^2` rays per (pixel, env
         pixel) pair towards the midpoints of a `k x k` split of the env pixel, the pixel's `group`
         footprint points taking them in turn along the split's diagonals (each point's rays cover
@@ -332,8 +418,14 @@ class DirectLighting:
         per_point = _rays_per_point(k, group)
         strata = _diagonal_order(k)[(np.arange(group)[:, None] * per_point + np.arange(per_point)) % (k * k)]
         w = self._cell_points(k).reshape(-1, 3)[(j * (k * k))[:, None] + strata[m % group]]  # (K, per_point, 3)
-        facing = _dot(w, n[m].astype(np.float32)[:, None, :]) > 0
-        occluded, rays = self._trace(x, m, w, cones, facing)
+        if origins is None:
+            facing = _dot(w, n[m].astype(np.float32)[:, None, :]) > 0
+            occluded, rays = self._trace(x, m, w, cones, facing)
+        else:  # from the points' sub-points (module docstring, "Sub-points"), the pixel's in turn
+            position, normal, seen, sub_cones = origins
+            at_sub = m[:, None] * SUB + (m[:, None] % group + np.arange(per_point)[None, :]) % SUB
+            facing = (_dot(w, normal[at_sub]) > 0) & seen[at_sub]
+            occluded, rays = self._trace_from(position, at_sub, w, sub_cones, facing)
         key = (m // group) * N + j
         size = int(key.max()) + 1
         shut = np.bincount(key, occluded.sum(axis=1), minlength=size)
@@ -357,6 +449,16 @@ class DirectLighting:
         out = np.zeros(self.grid.size)
         out[cells] = np.mean(cos * gloss.t(cos), axis=1) * self.omega[cells]
         return out
+
+
+class SubPoints(NamedTuple):
+    """`SUB` points in each footprint point's stratum of its pixel, `(M, SUB, ...)`: positions (offset
+    off their surface), normals, surfaces (-1: a miss) and albedos (module docstring, "Sub-points")."""
+
+    position: np.ndarray
+    normal: np.ndarray
+    surface: np.ndarray
+    albedo: np.ndarray
 
 
 class SplitRows(NamedTuple):

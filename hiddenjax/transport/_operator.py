@@ -109,7 +109,8 @@ class TransportOperator(PixelRows):
         pts = plan.chunk_points(i)
         S = plan.S
         split = plan.lighting.split_rows(pts.position, pts.normal, pts.surface,
-                                         np.random.default_rng([self.seed, 1, i]), group=S)
+                                         np.random.default_rng([self.seed, 1, i]), group=S, sub=pts.sub,
+                                         albedo=pts.albedo)
         weight = pts.albedo / (np.pi * S)
         rows, cols, vals = split.m // S, split.j, weight[split.m] * split.delta
         if not self._low_rank:
