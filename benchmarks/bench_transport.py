@@ -56,6 +56,10 @@ def column_errors(A, ref):
     return np.linalg.norm(A - ref, axis=0)[keep] / norms[keep]
 
 
+def build_name(adaptive: bool, sub_points: bool) -> str:
+    return "fixed" if not adaptive else "adaptive + sub-points" if sub_points else "adaptive"
+
+
 def fixed_seconds(accuracy, error: float, pixel_samples: int) -> float | None:
     """Seconds fixed sampling with `pixel_samples` needs for median column error `error`: its curve
     interpolated log-log between its points (None outside it: no time without extrapolating)."""
@@ -82,7 +86,8 @@ def equal_error(accuracy):
         if same is None and not times:
             continue  # outside every fixed curve
         best = min(times)
-        out.append(dict(samples=r["samples"], pixel_samples=r["pixel_samples"], seconds=r["seconds"],
+        out.append(dict(samples=r["samples"], pixel_samples=r["pixel_samples"], sub_points=r["sub_points"],
+                        seconds=r["seconds"],
                         median_column_error=err, fixed_seconds=same,
                         speedup=None if same is None else same / r["seconds"],
                         frontier_seconds=best, frontier_speedup=best / r["seconds"]))
@@ -176,11 +181,13 @@ def plot_accuracy(results, path):
     samples, one colour each, and Mitsuba's path tracer."""
     fig, ax = plt.subplots(figsize=(9, 4.5))
     for px, colour, marker in ((1, "C0", "o"), (4, "C1", "^"), (9, "C2", "v"), (16, "C3", "D")):
-        for adaptive in (False, True):
-            acc = [r for r in results["accuracy"] if r["pixel_samples"] == px and r["adaptive"] == adaptive]
+        for adaptive, sub, style in ((False, False, "-"), (True, False, "--"), (True, True, ":")):
+            acc = [r for r in results["accuracy"]
+                   if r["pixel_samples"] == px and r["adaptive"] == adaptive and r.get("sub_points", False) == sub]
+            if not acc:
+                continue
             ax.loglog([r["seconds"] for r in acc], [100 * r["median_column_error"] for r in acc],
-                      marker + ("--" if adaptive else "-"), color=colour,
-                      label=f"{'adaptive' if adaptive else 'fixed'}, pixel_samples={px}")
+                      marker + style, color=colour, label=f"{build_name(adaptive, sub)}, pixel_samples={px}")
             for r in acc:
                 ax.annotate(f"S={r['samples']}", (r["seconds"], 100 * r["median_column_error"]), fontsize=7)
     mit = results.get("mitsuba")
@@ -232,21 +239,23 @@ def main(argv=None):
     ref, t_ref = build(setup, grid, samples=16 if q else 32, pixel_samples=16, seed=1, mask=subset, adaptive=False)
     results["reference"] = dict(samples=16 if q else 32, pixel_samples=16, pixels=int(ref.A.shape[0]), seconds=t_ref)
     results["scaling"], results["accuracy"] = [], []
-    curves = [(False, 1, (2, 4, 8, 16, 32)), (False, 4, (2, 4, 8, 16, 32)), (False, 9, (2, 4, 8, 16)), (False, 16, (2, 4)),
-              (True, 1, (4, 8, 16, 32)), (True, 4, (4, 8, 16, 32)), (True, 9, (4, 8, 16)), (True, 16, (4,))]
-    for adaptive, px, sample_counts in curves:
+    curves = [(False, False, 1, (2, 4, 8, 16, 32)), (False, False, 4, (2, 4, 8, 16, 32)), (False, False, 9, (2, 4, 8, 16)),
+              (False, False, 16, (2, 4)), (True, False, 1, (4, 8, 16, 32)), (True, False, 4, (4, 8, 16, 32)),
+              (True, False, 9, (4, 8, 16)), (True, False, 16, (4,)), (True, True, 4, (4, 8, 16, 32)), (True, True, 9, (4, 8))]
+    for adaptive, sub, px, sample_counts in curves:
         for S in sample_counts:
-            T_s, t_s = build(setup, grid, samples=S, pixel_samples=px, seed=0, adaptive=adaptive)
+            T_s, t_s = build(setup, grid, samples=S, pixel_samples=px, seed=0, adaptive=adaptive, sub_points=sub)
             err = float(np.median(column_errors(*common_rows(T_s, ref))))
-            results["accuracy"].append(dict(samples=S, pixel_samples=px, adaptive=adaptive, seconds=t_s,
+            results["accuracy"].append(dict(samples=S, pixel_samples=px, adaptive=adaptive, sub_points=sub, seconds=t_s,
                                             median_column_error=err))
-            rows.append((f"{'adaptive' if adaptive else 'fixed'} samples={S}, pixel_samples={px}", f"{t_s:.2f} s",
+            rows.append((f"{build_name(adaptive, sub)} samples={S}, pixel_samples={px}", f"{t_s:.2f} s",
                          f"median column err {100 * err:.2f}%", ""))
     results["equal_error"] = equal_error(results["accuracy"])
     for r in results["equal_error"]:
         same = "outside its px curve" if r["speedup"] is None else \
             f"{r['speedup']:.1f}x (same px, {r['fixed_seconds']:.1f} s)"
-        rows.append((f"adaptive S={r['samples']}, px={r['pixel_samples']} vs fixed", f"{r['seconds']:.2f} s",
+        rows.append((f"{build_name(True, r['sub_points'])} S={r['samples']}, px={r['pixel_samples']} vs fixed",
+                     f"{r['seconds']:.2f} s",
                      f"at {100 * r['median_column_error']:.2f}%: {same}",
                      f"{r['frontier_speedup']:.1f}x the fastest fixed ({r['frontier_seconds']:.1f} s)"))
     small = hj.scenes.object_on_plane("teapot", width=size // 2, height=size // 2)
@@ -272,14 +281,14 @@ def main(argv=None):
         a, b = np.asarray(hj.render(Td, env))[mask], np.asarray(hj.render(Tref, env))[mask]
         return float(np.linalg.norm(a - b) / np.linalg.norm(b))
 
-    for adaptive in (True, False):
+    for adaptive, sub in ((True, False), (False, False), (True, True)):
         errors, errors_fine = [], []
         for seed in range(3):  # the error of one build is itself noisy: three seeds
-            Td, _ = build(dsetup, grid, seed=seed, adaptive=adaptive)
+            Td, _ = build(dsetup, grid, seed=seed, adaptive=adaptive, sub_points=sub)
             errors.append(relative_error(Td, Tr, Td.mask & Tr.mask))
             errors_fine.append(relative_error(Td, Tf, Td.mask & Tr.mask & Tf.mask))
-        _, t_default = build(setup, grid, adaptive=adaptive)
-        name = "adaptive" if adaptive else "fixed"
+        _, t_default = build(setup, grid, adaptive=adaptive, sub_points=sub)
+        name = build_name(adaptive, sub)
         results["defaults"][name] = dict(
             samples=hj.transport.DEFAULT_SAMPLES, pixel_samples=hj.transport.DEFAULT_PIXEL_SAMPLES, image=img_size,
             render_relrmse_vs_high_sample=float(np.mean(errors)), seeds=errors, seconds_full_size=t_default,

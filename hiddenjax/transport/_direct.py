@@ -24,20 +24,26 @@ always get them. The estimate is unbiased on the pairs that are refined; a pair 
 that all coarse rays call unoccluded (or occluded) keeps a bias of at most its occluded
 (unoccluded) part, measured in docs/experiments/transport-build.md.
 
-Sub-points (adaptive builds of diffuse scenes with two or more footprint samples per pixel,
-`samples` a multiple of `SUB`): every footprint point `x` (uniform in its stratum `R` of the
+Sub-points (`transport_matrix(sub_points=True)`: adaptive builds of diffuse scenes with two or
+more footprint samples per pixel, `samples` a multiple of `SUB`): every footprint point `x` (uniform in its stratum `R` of the
 pixel) carries `SUB` sub-points `y_a`, one uniform in each part of a 2 x 2 split of `R` (the
-camera's ray through it), and the adaptive build traces from them instead of from `x`: the coarse
-rays of a pixel start from its points' sub-points in turn, the outline's 16 from all of them (so
-a pixel's footprint is probed at 16 places), and a refined pair's `S` directions are handed to the
+camera's ray through it), and the adaptive build traces from them instead of from `x`: each coarse
+ray from one of its point's sub-points, taken by a random cyclic shift per pair (every sub-point as
+likely: a fixed choice probes some parts of every pixel and never others, and the pairs it then
+misses lie in the same parts of every pixel, a shift of the shadows), the outline's 16 from all of
+them (so a pixel's footprint is probed at 16 places), and a refined pair's `S` directions are handed to the
 sub-points by a random cyclic shift of an order that gives each `S / SUB` strata spread over the
 env pixel's rows and columns. The occluded part is
 
-    (Omega_j / S) sum_k (1 - V(y_k, w_k)) max(0, n_k . w_k) rho(y_k) / rho(x),
+    (Omega_j / S) sum_k (1 - V(y_k, w_k)) max(0, n . w_k) rho(y_k) / rho(x),
 
-over the draws the mean over `R` of `rho O(y)` divided by `rho(x)`, which the row multiplies back
-(the sub-points are together uniform in `R`, and the shift pairs every direction stratum with every
-part of `R` alike); `rho(x) U(x)` is the stratum's mean of `rho U` as before. A shadow edge across
+with the footprint point's normal `n`: over the draws, the mean over `R` of the visibility's part
+weighted by `rho` (the sub-points are together uniform in `R`, and the shift pairs every direction
+stratum with every part of `R` alike), divided by `rho(x)`, which the row multiplies back, while
+`rho(x) U(x)` is the stratum's mean of `rho U` as before. On a flat receiver that is the pixel's
+footprint integral; on a curved one the cosine is the footprint point's, as everywhere else in
+its row, so an entry is never made negative by another normal. A sub-point on another surface
+than its point's (the pixel is on an outline) is the point itself. A shadow edge across
 a footprint varies with the place as much as with the direction: with the rays at four places per
 footprint point, the refined pairs' estimate holds far less of the footprint's noise. The bias
 stays that of the pairs every coarse ray agrees on, now over `R` rather than at `x`: at most the
@@ -298,12 +304,12 @@ class DirectLighting:
             cols = S // max(d for d in range(1, int(np.sqrt(S)) + 1) if S % d == 0)
             row, col = np.divmod(np.arange(S), cols)
             order = ((col - row) % cols) % SUB if cols % SUB == 0 else np.arange(S) % SUB
-            sub_position = sub.position.reshape(-1, 3).astype(np.float32)
-            sub_normal = sub.normal.reshape(-1, 3).astype(np.float32)
-            sub_seen = sub.surface.reshape(-1) >= 0
-            sub_ratio = (sub.albedo / albedo[:, None]).reshape(-1)
-            sub_cones = self._cones(sub_position, sub.surface.reshape(-1))
-            origins = (sub_position, sub_normal, sub_seen, sub_cones)
+            # a sub-point on another surface than its point's (a silhouette) is the point itself
+            same = sub.surface == surface[:, None]
+            sub_position = np.where(same[..., None], sub.position, x[:, None, :]).reshape(-1, 3).astype(np.float32)
+            sub_ratio = np.where(same, sub.albedo / albedo[:, None], 1.0).reshape(-1)
+            sub_cones = self._cones(sub_position, np.repeat(surface, SUB))
+            origins = (sub_position, sub_cones, rng)
         if self.adaptive and _rays_per_point(2, group) < S:
             easy = np.nonzero(~glossy[m_idx])[0]
             m, j = m_idx[easy], j_idx[easy]
@@ -326,8 +332,8 @@ class DirectLighting:
             w = self.grid.sample_directions(j[:, None], stratified_square(rng, len(m), S, np.float32))  # (K,S,3)
             if sub is not None:  # each direction from one of the point's sub-points, S/SUB of them each
                 at_sub = m[:, None] * SUB + (order[None, :] + rng.integers(0, SUB, (len(m), 1))) % SUB  # (K, S)
-                cos = _dot(w, sub_normal[at_sub])
-                occluded, traced = self._trace_from(sub_position, at_sub, w, sub_cones, (cos > 0) & sub_seen[at_sub])
+                cos = _dot(w, n[m].astype(np.float32)[:, None, :])
+                occluded, traced = self._trace_from(sub_position, at_sub, w, sub_cones, cos > 0)
                 rays += traced
                 term = np.where(occluded, -np.maximum(cos, 0.0) * sub_ratio[at_sub], 0.0)
                 delta[at] = self.omega[j] / S * term.sum(axis=1)
@@ -422,9 +428,9 @@ class DirectLighting:
             facing = _dot(w, n[m].astype(np.float32)[:, None, :]) > 0
             occluded, rays = self._trace(x, m, w, cones, facing)
         else:  # from the points' sub-points (module docstring, "Sub-points"), the pixel's in turn
-            position, normal, seen, sub_cones = origins
-            at_sub = m[:, None] * SUB + (m[:, None] % group + np.arange(per_point)[None, :]) % SUB
-            facing = (_dot(w, normal[at_sub]) > 0) & seen[at_sub]
+            position, sub_cones, rng = origins  # each ray's sub-point uniform (a random shift per pair)
+            at_sub = m[:, None] * SUB + (rng.integers(0, SUB, (len(m), 1)) + np.arange(per_point)[None, :]) % SUB
+            facing = _dot(w, n[m].astype(np.float32)[:, None, :]) > 0
             occluded, rays = self._trace_from(position, at_sub, w, sub_cones, facing)
         key = (m // group) * N + j
         size = int(key.max()) + 1

@@ -363,6 +363,7 @@ def transport_operator(
     cache: int | str | None = None,
     keep_occluder: bool = False,
     adaptive: bool = True,
+    sub_points: bool = False,
     threads: int | None = None,
     progress: bool = True,
     products: str = "auto",
@@ -396,7 +397,7 @@ def transport_operator(
     threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
     guard(need_setup(camera, grid, pixel_samples, threads), budget, "memory",
           "use fewer pixels (a smaller image) or fewer pixel_samples, or a coarser grid")
-    plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder, adaptive)
+    plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder, adaptive, sub_points)
     cache = None if cache is None else parse_memory(cache, "cache")
     return TransportOperator(plan, samples, seed, budget, cache, threads, progress, products)
 

@@ -75,6 +75,7 @@ def transport_matrix_sharded(
     devices=None,
     keep_occluder: bool = False,
     adaptive: bool = True,
+    sub_points: bool = False,
     threads: int | None = None,
     max_bytes: int | str = DEFAULT_MAX_BYTES,
     progress: bool = True,
@@ -95,7 +96,7 @@ def transport_matrix_sharded(
     budget = parse_memory(max_bytes, "max_bytes")
     guard(need_setup(camera, grid, pixel_samples, threads), budget, "max_bytes", "use a coarser grid or fewer pixels")
     mesh = row_mesh(devices)
-    plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder, adaptive)
+    plan = BuildPlan(scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder, adaptive, sub_points)
     rows = -(-plan.P // mesh.size) * mesh.size
     per = rows // mesh.size
     sharding = row_sharding(mesh)
