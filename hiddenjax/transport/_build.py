@@ -285,8 +285,8 @@ def _sub_points(caster, view, pixels, S: int, rng) -> "SubPoints":
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     hits = caster.intersect(np.broadcast_to(origin, d.shape), d)
     shape = (len(pixels) * S, SUB)
-    return SubPoints((hits.position + caster.offset * hits.normal).reshape(*shape, 3), hits.normal.reshape(*shape, 3),
-                     hits.surface.reshape(shape), hits.albedo.reshape(shape))
+    return SubPoints((hits.position + caster.offset * hits.normal).reshape(*shape, 3), hits.surface.reshape(shape),
+                     hits.albedo.reshape(shape))
 
 
 class _Points:

@@ -25,15 +25,16 @@ that all coarse rays call unoccluded (or occluded) keeps a bias of at most its o
 (unoccluded) part, measured in docs/experiments/transport-build.md.
 
 Sub-points (`transport_matrix(sub_points=True)`: adaptive builds of diffuse scenes with two or
-more footprint samples per pixel, `samples` a multiple of `SUB`): every footprint point `x` (uniform in its stratum `R` of the
-pixel) carries `SUB` sub-points `y_a`, one uniform in each part of a 2 x 2 split of `R` (the
-camera's ray through it), and the adaptive build traces from them instead of from `x`: each coarse
-ray from one of its point's sub-points, taken by a random cyclic shift per pair (every sub-point as
-likely: a fixed choice probes some parts of every pixel and never others, and the pairs it then
-misses lie in the same parts of every pixel, a shift of the shadows), the outline's 16 from all of
-them (so a pixel's footprint is probed at 16 places), and a refined pair's `S` directions are handed to the
-sub-points by a random cyclic shift of an order that gives each `S / SUB` strata spread over the
-env pixel's rows and columns. The occluded part is
+more footprint samples per pixel, `samples` a multiple of `SUB`): every footprint point `x`
+(uniform in its stratum `R` of the pixel) carries `SUB` sub-points `y_a`, one uniform in each part
+of a 2 x 2 split of `R` (the camera's ray through it), and the adaptive build traces from them
+instead of from `x`. Each coarse ray starts from one of its point's sub-points, taken by a random
+cyclic shift per pair (every sub-point as likely: a fixed choice probes some parts of every pixel
+and never others, and the pairs it then misses lie in the same parts of every pixel, a shift of
+the shadows); the outline's 16 start from all of them (a pixel's footprint is probed at 16
+places); a refined pair's `S` directions are handed to the sub-points by a random cyclic shift of
+an order that gives each `S / SUB` strata spread over the env pixel's rows and columns. The
+occluded part is
 
     (Omega_j / S) sum_k (1 - V(y_k, w_k)) max(0, n . w_k) rho(y_k) / rho(x),
 
@@ -41,13 +42,13 @@ with the footprint point's normal `n`: over the draws, the mean over `R` of the 
 weighted by `rho` (the sub-points are together uniform in `R`, and the shift pairs every direction
 stratum with every part of `R` alike), divided by `rho(x)`, which the row multiplies back, while
 `rho(x) U(x)` is the stratum's mean of `rho U` as before. On a flat receiver that is the pixel's
-footprint integral; on a curved one the cosine is the footprint point's, as everywhere else in
-its row, so an entry is never made negative by another normal. A sub-point on another surface
-than its point's (the pixel is on an outline) is the point itself. A shadow edge across
-a footprint varies with the place as much as with the direction: with the rays at four places per
-footprint point, the refined pairs' estimate holds far less of the footprint's noise. The bias
-stays that of the pairs every coarse ray agrees on, now over `R` rather than at `x`: at most the
-pair's occluded (unoccluded) part, measured in docs/experiments/transport-build.md.
+footprint integral; on a curved one the cosine is the footprint point's, as everywhere else in its
+row, so no entry is made negative by another normal. A sub-point on another surface than its
+point's (the pixel is on an outline) is the point itself. A shadow edge across a footprint varies
+with the place as much as with the direction: with the rays at four places per footprint point,
+the refined pairs' estimate holds far less of the footprint's noise. The bias stays that of the
+pairs every coarse ray agrees on, now over `R` rather than at `x`: at most the pair's occluded
+(unoccluded) part, measured in docs/experiments/transport-build.md.
 
 Glossy surfaces (`Surface(roughness=...)`, `scene._gloss`) seen from a view direction `v`: the
 diffuse base weights each direction by `t(n.w) n.w` instead of `n.w` (its unoccluded part by a
@@ -459,10 +460,9 @@ class DirectLighting:
 
 class SubPoints(NamedTuple):
     """`SUB` points in each footprint point's stratum of its pixel, `(M, SUB, ...)`: positions (offset
-    off their surface), normals, surfaces (-1: a miss) and albedos (module docstring, "Sub-points")."""
+    off their surface), surfaces (-1: a miss) and albedos (module docstring, "Sub-points")."""
 
     position: np.ndarray
-    normal: np.ndarray
     surface: np.ndarray
     albedo: np.ndarray
 
