@@ -71,7 +71,7 @@ def transport_matrix(
     - `sub_points`: with `adaptive`, two or more footprint samples and a diffuse scene, the rays
       start from four sub-points of each footprint sample's part of the pixel instead of from the
       sample (`_direct`, "Sub-points"): the footprint is probed and sampled at four times as many
-      places for the same rays (about 40% less column error at the defaults, up to 13% more time;
+      places for the same rays (about 40% less column error at the defaults, 0-16% more time;
       docs/experiments/transport-build.md). Default False.
     - `threads`: chunks in flight at once (default: the number of cores). Numpy releases the GIL,
       so Embree queries of one chunk overlap the arithmetic of another; results do not depend
