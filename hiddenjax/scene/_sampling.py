@@ -3,6 +3,13 @@
 import numpy as np
 
 
+def strata_shape(samples: int) -> tuple[int, int]:
+    """`(k, m)`, `k m = samples`: the rows and columns of `stratified_square`'s jittered grid, `k` the
+    largest divisor of `samples` not above its square root."""
+    k = max(d for d in range(1, int(np.sqrt(samples)) + 1) if samples % d == 0)
+    return k, samples // k
+
+
 def stratified_square(rng: np.random.Generator, count: int, samples: int, dtype=np.float64) -> np.ndarray:
     """`count` independent sets of `samples` jittered-grid points in `[0, 1)^2`.
 
@@ -14,8 +21,7 @@ def stratified_square(rng: np.random.Generator, count: int, samples: int, dtype=
     """
     if samples < 1:
         raise ValueError(f"samples must be >= 1, got {samples}")
-    k = max(d for d in range(1, int(np.sqrt(samples)) + 1) if samples % d == 0)
-    m = samples // k
+    k, m = strata_shape(samples)
     row, col = np.divmod(np.arange(samples), m)
     offset = np.stack([row / k, col / m], axis=-1).astype(dtype)
     scale = np.array([1 / k, 1 / m], dtype=dtype)

@@ -9,7 +9,7 @@ from tqdm.auto import tqdm
 
 from .._jit import host_array
 from ..scene import Camera, EnvGrid, Scene
-from ..scene._sampling import cosine_directions
+from ..scene._sampling import cosine_directions, strata_shape
 from ._direct import SUB, DirectLighting, SubPoints
 from ._embree import Hits, primary_hits
 from ._matrix import TransportMatrix
@@ -272,8 +272,7 @@ def _sub_points(caster, view, pixels, S: int, rng) -> "SubPoints":
     `stratified_square`, each split 2 x 2), hit by the rays of the camera `view = (origin, rotation,
     intrinsics, width)`: `(len(pixels) * S, SUB)` each."""
     origin, rotation, intrinsics, width = view
-    k = max(d for d in range(1, int(np.sqrt(S)) + 1) if S % d == 0)
-    m = S // k
+    k, m = strata_shape(S)
     row, col = np.divmod(np.arange(S), m)
     a, b = np.divmod(np.arange(SUB), 2)
     u = np.stack([(row[:, None] + (a[None, :] + rng.random((len(pixels), S, SUB))) / 2) / k,

@@ -64,7 +64,7 @@ import numpy as np
 
 from ..scene import EnvGrid, Scene
 from ..scene._gloss import specular
-from ..scene._sampling import stratified_square
+from ..scene._sampling import strata_shape, stratified_square
 from ._embree import RayCaster
 
 # Direction samples handled per vectorized block: bounds the temporaries to ~30 MB per thread.
@@ -302,7 +302,7 @@ class DirectLighting:
             # the sub-point each direction stratum starts from: a random cyclic shift per pair of an order
             # that gives every sub-point S/SUB strata spread over the split's rows and columns; the shift
             # makes each stratum's sub-point uniform over the SUB parts, which is all unbiasedness needs
-            cols = S // max(d for d in range(1, int(np.sqrt(S)) + 1) if S % d == 0)
+            _, cols = strata_shape(S)
             row, col = np.divmod(np.arange(S), cols)
             order = ((col - row) % cols) % SUB if cols % SUB == 0 else np.arange(S) % SUB
             # a sub-point on another surface than its point's (a silhouette) is the point itself

@@ -63,22 +63,24 @@ def render_point_lights(
     n, albedo = hits.normal[hit], hits.albedo[hit]
     out = np.zeros(len(hits.surface))
     glossy = [(hits.surface[hit] == k, s.gloss) for k, s in enumerate(scene) if s.gloss is not None]
-    for light, power in zip(lights, intensities):
-        direct = direct_images(caster, x, n, albedo, light)
-        for on, gloss in glossy:  # seen along the pixel's ray: the view is its reverse
-            direct[on] *= glossy_gain(x[on], n[on], albedo[on], -directions[hit][on], gloss, light)
-        out[hit] += power * direct
+    # seen along the pixel's ray: the view is its reverse
+    out[hit] = direct_light(caster, x, n, albedo, lights, intensities, glossy, -directions[hit])
     if bounces:
         out[hit] += interreflected(caster, x, n, albedo, lights, intensities, bounce_rays, seed + 1, bounces)
     return out.reshape(camera.height, camera.width, pixel_samples).mean(axis=2).astype(np.float32)
 
 
-def direct_light(caster: RayCaster, x, n, albedo, lights, intensities) -> np.ndarray:
+def direct_light(caster: RayCaster, x, n, albedo, lights, intensities, glossy=(), view=None) -> np.ndarray:
     """`(N,)` radiance `sum_l I_l direct_images(x, l)` at points `x (N, 3)` (lifted off their surface),
-    normals `n`, albedo `albedo`, under point lights `(L, 3)` of intensities `(L,)` (module docstring)."""
+    normals `n`, albedo `albedo`, under point lights `(L, 3)` of intensities `(L,)` (module docstring);
+    `glossy` `[(on (N,) bool, Gloss)]`: those points' direct light times `glossy_gain`, seen from unit
+    directions `view (N, 3)` towards the camera."""
     out = np.zeros(len(x))
     for light, power in zip(lights, intensities):
-        out += power * direct_images(caster, x, n, albedo, light)
+        direct = direct_images(caster, x, n, albedo, light)
+        for on, gloss in glossy:
+            direct[on] *= glossy_gain(x[on], n[on], albedo[on], view[on], gloss, light)
+        out += power * direct
     return out
 
 
