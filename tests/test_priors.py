@@ -310,6 +310,50 @@ def test_sunsky_finds_a_sun_between_cells_to_a_fraction_of_a_cell(sun_scene, whe
     assert float(np.max(sol.kkt_residual)) < 1e-3
 
 
+def test_sources_the_grid_cannot_tell_apart_are_reported_as_one():
+    """Two splats sharing a cell merge into their power-weighted mean direction with the summed power, the
+    variance carried through the merge's Jacobian (checked by central differences in float64); a source
+    two cells away keeps its slot, and a powerless member with infinite variance leaves the merge finite."""
+    grid = hj.EnvGrid(16, 32)
+    h = np.array([np.pi / 16, 2 * np.pi / 32])
+    cells = np.array([[4.2, 7.3], [3.6, 6.65], [10.5, 20.5], [4.4, 7.9]])  # 0, 1 and 3 overlap; 2 is apart
+    angles = jnp.asarray(cells * h, jnp.float32)
+    power = jnp.asarray([[1.4, 1.0], [1.1, 1.2], [0.7, 0.7], [0.0, 0.0]], jnp.float32)
+    active = jnp.asarray([True, True, True, True])
+    rng = np.random.default_rng(0)
+    M = rng.normal(size=(8, 8)) * 1e-3
+    cov = M @ M.T
+    cov[6:, :] = cov[:, 6:] = 0.0
+    cov[6, 6] = cov[7, 7] = np.inf  # slot 3 has no power: its direction is undetermined
+    out, root, merged_power, std = hj.solvers._sunsky.merge_unresolved(grid, angles, active, power,
+                                                                       jnp.asarray(cov, jnp.float32))
+    assert np.asarray(root).tolist() == [True, False, True, False]
+    assert np.allclose(merged_power, [[2.5, 2.2], [0, 0], [0.7, 0.7], [0, 0]], atol=1e-6)
+    assert np.asarray(std)[1] == 0 and np.asarray(std)[3] == 0 and np.all(np.isfinite(std))
+
+    def unit(a):
+        return np.stack([np.sin(a[..., 1]) * np.sin(a[..., 0]), np.cos(a[..., 0]), -np.cos(a[..., 1]) * np.sin(a[..., 0])], -1)
+
+    w = np.asarray(power, np.float64).mean(1)
+
+    def mean_direction(a):  # the merged angles of slots 0, 1 (slot 3 weighs nothing) in float64
+        v = w[0] * unit(a[0]) + w[1] * unit(a[1])
+        return np.array([np.arctan2(np.hypot(v[0], v[2]), v[1]), np.mod(np.arctan2(v[0], -v[2]), 2 * np.pi)])
+
+    a64 = cells * h
+    expect = mean_direction(a64)
+    assert np.allclose(np.asarray(out)[0], expect, atol=1e-5)
+    assert np.allclose(np.asarray(out)[2], a64[2], atol=1e-6)  # kept as it was
+    J = np.zeros((2, 4))
+    for i in range(4):
+        e = np.zeros(8)
+        e[i] = 1e-6
+        J[:, i] = (mean_direction(a64 + e[:8].reshape(4, 2)) - mean_direction(a64 - e[:8].reshape(4, 2))) / 2e-6
+    var = np.diag(J @ cov[:4, :4] @ J.T)
+    assert float(std[0]) == pytest.approx(np.sqrt(var[0] + np.sin(expect[0]) ** 2 * var[1]), rel=1e-3)
+    assert float(std[2]) == pytest.approx(np.sqrt(cov[4, 4] + np.sin(a64[2, 0]) ** 2 * cov[5, 5]), rel=1e-4)
+
+
 def test_sunsky_keeps_no_source_under_a_sky_without_one(sun_scene):
     setup, T = sun_scene
     pano = sky_with_sun(0.5, 1.0, power=0.0)

@@ -17,6 +17,12 @@ added one at a time where the gradient promises the largest decrease (matching p
 (`effective_samples`): the residuals of a real photo (interreflections, the grid's
 discretization, sampling) are correlated over neighbouring pixels, and with every pixel counted as
 independent BIC keeps a source for any 0.1% drop of the residual.
+
+Sources that the grid cannot tell apart are reported as one (`merge_unresolved`): two splats that
+share a cell are closer than the grid resolves, and a sun between cell centres is often fitted by
+two of them half a cell either side of it (a point source's shadows are sharper than any one
+bilinear blend of cell columns), each direction then uncertain by tens of degrees while their
+power-weighted mean is within a tenth of a cell.
 """
 
 from typing import ClassVar
@@ -114,10 +120,9 @@ class SunSkyPrior(Prior):
         scale = jnp.maximum(jnp.maximum(jnp.max(jnp.abs(columns), 0), jnp.max(jnp.abs(c_s), 0)), 1e-30)
         kkt = jnp.maximum(jnp.max(jnp.abs(jnp.minimum(x, grad_sky)), 0),
                           jnp.max(jnp.abs(jnp.where(active[:, None], jnp.minimum(s * unit, grad_s), 0.0)), 0)) / scale
-        std = _angle_std(B - R, grid, angles, active, s, rss, sum(y.shape[0] for y in ys) * C)
-        theta, phi = angles[:, 0], angles[:, 1]
-        directions = jnp.stack([jnp.sin(phi) * jnp.sin(theta), jnp.cos(theta), -jnp.cos(phi) * jnp.sin(theta)], -1)
-        power = jnp.where(active[:, None], s, 0.0)
+        cov = _angle_covariance(B - R, grid, angles, active, s, rss, sum(y.shape[0] for y in ys) * C)
+        angles, active, power, std = merge_unresolved(grid, angles, active, jnp.where(active[:, None], s, 0.0), cov)
+        directions = _unit(angles)
         sources = Sources(angles, directions, power[:, 0] if c.ndim == 1 else power, std, active, bic)
         squeeze = (lambda a: a[:, 0]) if c.ndim == 1 else (lambda a: a)
         one = (lambda a: a[0]) if c.ndim == 1 else (lambda a: a)
@@ -304,9 +309,58 @@ def _sunsky(B, factor, R, lr, grid, c, yy, prior: SunSkyPrior, solver):
     return stages
 
 
-def _angle_std(gram, grid, angles, active, s, rss, n):
-    """Gauss-Newton standard deviation of each source's direction (radians), sky and powers held;
-    `gram = A^T A`."""
+def _unit(angles):
+    """Unit vectors `(K, 3)` towards `angles (K, 2)` (the grid's convention)."""
+    theta, phi = angles[:, 0], angles[:, 1]
+    return jnp.stack([jnp.sin(phi) * jnp.sin(theta), jnp.cos(theta), -jnp.cos(phi) * jnp.sin(theta)], -1)
+
+
+def merge_unresolved(grid, angles, active, power, cov):
+    """One source for each group of active sources whose splats share a grid cell (transitively).
+
+    A group's source sits at the power-weighted mean direction `w = sum_k p_k u_k / |sum_k p_k u_k|`
+    (`u_k` the unit vectors, `p_k` the channel-mean powers), with the summed power, in the slot of
+    its most powerful member; the other members' slots become inactive. The direction's covariance
+    is the sources' Gauss-Newton covariance `cov (2K, 2K)` carried through the merge,
+    `J cov J^T` with `J = d angles' / d angles` (powers held), so the strong anticorrelation of two
+    halves of one sun makes the merged direction as certain as the data allow. Returns
+    `(angles, active, power, angle_std)`, the standard deviation `sqrt(var_theta + sin^2 theta var_phi)`.
+    """
+    K = angles.shape[0]
+    weight = power.mean(axis=1)
+    touch = (splat(grid, angles, active) > 0).astype(power.dtype)
+    linked = (touch.T @ touch > 0) & active[:, None] & active[None, :]
+    for _ in range(max(K - 1, 0)):  # transitive closure over at most K - 1 links
+        linked = linked | ((linked.astype(power.dtype) @ linked.astype(power.dtype)) > 0)
+    order = jnp.arange(K)
+    # a group's root: its most powerful member (the lowest slot among equals)
+    beats = (weight[None, :] > weight[:, None]) | ((weight[None, :] == weight[:, None]) & (order[None, :] < order[:, None]))
+    root = active & ~jnp.any(linked & beats, axis=1)
+    group = (linked & root[:, None]).astype(power.dtype)  # (root, member)
+    # a group of one keeps its direction as it is; so does a group without power (no mean to take)
+    moved = root & (jnp.sum(group, 1) > 1) & (group @ weight > 0)
+
+    def merged(a):
+        v = group @ (weight[:, None] * _unit(a))
+        theta = jnp.arctan2(jnp.hypot(v[:, 0], v[:, 2]), v[:, 1])
+        phi = jnp.mod(jnp.arctan2(v[:, 0], -v[:, 2]), 2 * jnp.pi)
+        return jnp.where(moved[:, None], jnp.stack([theta, phi], -1), a)
+
+    out = merged(angles)
+    J = jax.jacfwd(merged)(angles).reshape(2 * K, 2 * K)
+    # members without power do not move the mean (their columns of J are 0): their variance, which can
+    # overflow to inf, is left out of the product rather than giving 0 * inf
+    weighed = jnp.repeat(weight > 0, 2)
+    carried = jnp.diag(J @ jnp.where(weighed[:, None] & weighed[None, :], cov, 0.0) @ J.T)
+    var = jnp.where(jnp.repeat(moved, 2), carried, jnp.diag(cov)).reshape(K, 2)
+    std = jnp.sqrt(jnp.maximum(var[:, 0] + jnp.sin(out[:, 0]) ** 2 * var[:, 1], 0.0))
+    power = jnp.where(root[:, None], group @ power, 0.0)
+    return out, root, power, jnp.where(root, std, 0.0)
+
+
+def _angle_covariance(gram, grid, angles, active, s, rss, n):
+    """Gauss-Newton covariance `(2K, 2K)` of the sources' directions `(theta_k, phi_k)` (radians^2),
+    sky and powers held; `gram = A^T A`. Inactive slots get variance 0."""
     dtype = s.dtype
     S_of = lambda a: splat(grid, a, active) @ s  # (N, C)
     J = jax.jacfwd(S_of)(angles).reshape(grid.size, s.shape[1], -1)
@@ -322,6 +376,5 @@ def _angle_std(gram, grid, angles, active, s, rss, n):
     d = jnp.sqrt(jnp.maximum(jnp.diag(H), jnp.finfo(dtype).tiny))
     e, V = jnp.linalg.eigh(H / (d[:, None] * d[None, :]))
     e = jnp.maximum(e, jnp.finfo(dtype).eps * H.shape[0] * jnp.max(e))
-    var = ((rss.sum() / dof) * jnp.sum(V**2 / e[None, :], axis=1) / d**2).reshape(-1, 2)
-    std = jnp.sqrt(jnp.maximum(var[:, 0] + jnp.sin(angles[:, 0]) ** 2 * var[:, 1], 0.0))
-    return jnp.where(active, std, 0.0)
+    cov = (rss.sum() / dof) * (V / e[None, :]) @ V.T / (d[:, None] * d[None, :])
+    return jnp.where(free[:, None] & free[None, :], cov, 0.0)
