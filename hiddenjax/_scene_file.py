@@ -321,7 +321,7 @@ def _transport(t: _Table) -> dict:
         bounces=t.integer("bounces", 0),
         keep_occluder=t.boolean("keep_occluder", False),
         adaptive=t.boolean("adaptive", True),
-        sub_points=t.boolean("sub_points", False),
+        sub_points=t.boolean("sub_points", True),
     )
     t.done()
     return options

@@ -48,8 +48,8 @@ def test_minimal_file_defaults(tmp_path):
     f = hj.load_scene(write(tmp_path, MINIMAL))
     assert (f.camera.width, f.camera.height) == (16, 12) and f.grid.shape == (4, 8)
     assert f.transport == dict(samples=hj.transport.DEFAULT_SAMPLES, pixel_samples=hj.transport.DEFAULT_PIXEL_SAMPLES,
-                               seed=0, bounces=0, keep_occluder=False, adaptive=True, sub_points=False)
-    assert hj.load_scene(write(tmp_path, MINIMAL + "[transport]\nsub_points = true\n", "sub.toml")).transport["sub_points"]
+                               seed=0, bounces=0, keep_occluder=False, adaptive=True, sub_points=True)
+    assert not hj.load_scene(write(tmp_path, MINIMAL + "[transport]\nsub_points = false\n", "sub.toml")).transport["sub_points"]
     (plane,) = f.scene
     assert plane.observe and float(plane.albedo) == 0.6
     np.testing.assert_allclose(plane.mesh.bounds, [[-0.5, 0, -0.5], [0.5, 0, 0.5]])

@@ -360,10 +360,12 @@ def test_joint_albedo_raises_instead_of_nan(textured_plane):
 
 
 def test_several_views_share_one_env_map(textured_plane, teapot):
-    setup, T1 = teapot
+    setup, _ = teapot
     other = hj.Camera.look_at([0.1, 0.25, -0.15], [0, 0.01, 0], [0, 1, 0], 40.0, 40, 40)
-    grid = T1.grid
-    T2 = hj.transport_matrix(setup.scene, other, grid, samples=16, pixel_samples=2, progress=False)
+    grid = hj.EnvGrid(16, 32)
+    # both views at the default samples: with 2 footprint samples the maps' tone-mapped SSIM moves by
+    # 0.04 from seed to seed, as much as the second view adds (at the defaults, 0.447-0.449 over 4 seeds)
+    T1, T2 = (hj.transport_matrix(setup.scene, cam, grid, progress=False) for cam in (setup.camera, other))
     sky = hj.scenes.procedural_sky(128, 256)
     truth = grid.downsample(sky)
     photos = [hj.reference_render(setup.scene, cam, sky, samples=256, pixel_samples=2, seed=4)
@@ -373,10 +375,13 @@ def test_several_views_share_one_env_map(textured_plane, teapot):
     one = [hj.metrics.env_errors(np.asarray(hj.solve_illumination(T, y, prior="l2").env), truth)
            for T, y in ((T1, photos[0]), (T2, photos[1]))]
     e = hj.metrics.env_errors(np.asarray(both.env), truth)
-    # Measured: tone-mapped SSIM 0.417 against 0.404 / 0.381 for either view alone; relrmse 0.777
-    # and linear SSIM 0.791 lie between the single views' (0.798 / 0.759, 0.776 / 0.794).
+    # Measured: tone-mapped SSIM 0.447 against 0.409 / 0.429 for either view alone; relrmse 0.773
+    # and linear SSIM 0.796 lie between the single views' (0.795 / 0.751, 0.777 / 0.807). The relrmse sits
+    # at the single views' mean (converged matrices: 0.7736 against 0.7739), on either side of it by a
+    # seed's noise (docs/experiments/transport-build.md), so it is held between them, not below the mean.
     assert e["ssim_tm"] > max(o["ssim_tm"] for o in one), (e, one)
-    assert e["relrmse"] < np.mean([o["relrmse"] for o in one]) and e["ssim"] > np.mean([o["ssim"] for o in one])
+    assert min(o["relrmse"] for o in one) < e["relrmse"] < max(o["relrmse"] for o in one), (e, one)
+    assert e["ssim"] > np.mean([o["ssim"] for o in one]), (e, one)
     # joint albedo across views: one albedo image per view
     grey = [p.mean(-1)[None] for p in photos]
     joint = hj.solvers.solve_albedo_illumination([T1, T2], grey, max_steps=3, throw=False)

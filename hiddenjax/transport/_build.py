@@ -40,7 +40,7 @@ def transport_matrix(
     bounce_samples: int = 1,
     keep_occluder: bool = False,
     adaptive: bool = True,
-    sub_points: bool = False,
+    sub_points: bool = True,
     threads: int | None = None,
     max_bytes: int | str = DEFAULT_MAX_BYTES,
     progress: bool = True,
@@ -53,8 +53,8 @@ def transport_matrix(
 
     **Arguments:**
     - `samples`: directions per env pixel for the visibility estimate (default 16; with the
-      default `pixel_samples` a rendered image has 0.47% Monte Carlo error, 0.33% with `sub_points`;
-      docs/benchmarks.md).
+      default `pixel_samples` and `sub_points` a rendered image has 0.33% Monte Carlo error, 0.47%
+      without sub-points; docs/benchmarks.md).
     - `pixel_samples`: stratified footprint samples per image pixel (box filter, default 4).
     - `mask`: optional `(H, W)` bool; intersected with the pixels whose whole footprint sees an
       observed surface (all of a surface with `keep_occluder=True`).
@@ -73,7 +73,9 @@ def transport_matrix(
       start from four sub-points of each footprint sample's part of the pixel instead of from the
       sample (`_direct`, "Sub-points"): the footprint is probed and sampled at four times as many
       places for the same rays (about 40% less column error at the defaults, 0-16% more time;
-      docs/experiments/transport-build.md). Default False.
+      docs/experiments/transport-build.md). Default True; where they do not apply (fixed
+      sampling, one footprint sample, `samples` not a multiple of 4, a scene with a glossy
+      surface) the rays start from the footprint samples.
     - `threads`: chunks in flight at once (default: the number of cores). Numpy releases the GIL,
       so Embree queries of one chunk overlap the arithmetic of another; results do not depend
       on it.
@@ -185,7 +187,7 @@ class BuildPlan:
     """
 
     def __init__(self, scene, camera, grid, samples, pixel_samples, mask, seed, keep_occluder, adaptive=True,
-                 sub_points=False):
+                 sub_points=True):
         self.lighting = DirectLighting(scene, grid, samples, adaptive)
         self.H, self.W, self.S = camera.height, camera.width, pixel_samples
         # the camera as numpy (its rays through the sub-points, chunk by chunk) and the seed

@@ -24,8 +24,8 @@ always get them. The estimate is unbiased on the pairs that are refined; a pair 
 that all coarse rays call unoccluded (or occluded) keeps a bias of at most its occluded
 (unoccluded) part, measured in docs/experiments/transport-build.md.
 
-Sub-points (`transport_matrix(sub_points=True)`: adaptive builds of diffuse scenes with two or
-more footprint samples per pixel, `samples` a multiple of `SUB`): every footprint point `x`
+Sub-points (`transport_matrix`'s default `sub_points=True`: adaptive builds of diffuse scenes with
+two or more footprint samples per pixel, `samples` a multiple of `SUB`): every footprint point `x`
 (uniform in its stratum `R` of the pixel) carries `SUB` sub-points `y_a`, one uniform in each part
 of a 2 x 2 split of `R` (the camera's ray through it), and the adaptive build traces from them
 instead of from `x`. Each coarse ray starts from one of its point's sub-points, taken by a random

@@ -363,7 +363,7 @@ def transport_operator(
     cache: int | str | None = None,
     keep_occluder: bool = False,
     adaptive: bool = True,
-    sub_points: bool = False,
+    sub_points: bool = True,
     threads: int | None = None,
     progress: bool = True,
     products: str = "auto",

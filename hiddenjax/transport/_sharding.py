@@ -75,7 +75,7 @@ def transport_matrix_sharded(
     devices=None,
     keep_occluder: bool = False,
     adaptive: bool = True,
-    sub_points: bool = False,
+    sub_points: bool = True,
     threads: int | None = None,
     max_bytes: int | str = DEFAULT_MAX_BYTES,
     progress: bool = True,
