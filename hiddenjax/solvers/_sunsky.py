@@ -49,7 +49,8 @@ class Sources(eqx.Module):
     `directions (K, 3)` unit vectors towards the sources; `power (K[, C])` radiance integrated over
     solid angle; `angle_std (K,)` the Gauss-Newton standard deviation of the direction (radians,
     from the residual's variance; conditional on the sky); `active (K,)` the slots in use;
-    `bic (K + 1,)` the criterion for `0 .. K` sources.
+    `bic (K + 1,)` the criterion for `0 .. K` sources. Sources whose splats share a grid cell are
+    one source here (`merge_unresolved`): `bic` counts the slots fitted, `active` the sources reported.
     """
 
     angles: Float[Array, "K 2"]
