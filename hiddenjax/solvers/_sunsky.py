@@ -34,6 +34,7 @@ from jaxtyping import Array, Bool, Float
 
 from .._jit import filter_jit
 from .._qp import ProjectedNewton, _cho_solve, solve_from
+from ..scene import direction
 from ._illumination import (
     DEFAULT_RIDGE,
     L2Prior,
@@ -123,7 +124,7 @@ class SunSkyPrior(Prior):
                           jnp.max(jnp.abs(jnp.where(active[:, None], jnp.minimum(s * unit, grad_s), 0.0)), 0)) / scale
         cov = _angle_covariance(B - R, grid, angles, active, s, rss, sum(y.shape[0] for y in ys) * C)
         angles, active, power, std = merge_unresolved(grid, angles, active, jnp.where(active[:, None], s, 0.0), cov)
-        directions = _unit(angles)
+        directions = direction(angles[:, 0], angles[:, 1])
         sources = Sources(angles, directions, power[:, 0] if c.ndim == 1 else power, std, active, bic)
         squeeze = (lambda a: a[:, 0]) if c.ndim == 1 else (lambda a: a)
         one = (lambda a: a[0]) if c.ndim == 1 else (lambda a: a)
@@ -310,12 +311,6 @@ def _sunsky(B, factor, R, lr, grid, c, yy, prior: SunSkyPrior, solver):
     return stages
 
 
-def _unit(angles):
-    """Unit vectors `(K, 3)` towards `angles (K, 2)` (the grid's convention)."""
-    theta, phi = angles[:, 0], angles[:, 1]
-    return jnp.stack([jnp.sin(phi) * jnp.sin(theta), jnp.cos(theta), -jnp.cos(phi) * jnp.sin(theta)], -1)
-
-
 def merge_unresolved(grid, angles, active, power, cov):
     """One source for each group of active sources whose splats share a grid cell (transitively).
 
@@ -342,7 +337,7 @@ def merge_unresolved(grid, angles, active, power, cov):
     moved = root & (jnp.sum(group, 1) > 1) & (group @ weight > 0)
 
     def merged(a):
-        v = group @ (weight[:, None] * _unit(a))
+        v = group @ (weight[:, None] * direction(a[:, 0], a[:, 1]))
         theta = jnp.arctan2(jnp.hypot(v[:, 0], v[:, 2]), v[:, 1])
         phi = jnp.mod(jnp.arctan2(v[:, 0], -v[:, 2]), 2 * jnp.pi)
         return jnp.where(moved[:, None], jnp.stack([theta, phi], -1), a)
