@@ -257,7 +257,7 @@ def test_sub_points_take_the_footprint_noise_out_of_the_adaptive_build(small_set
     column error under 0.75x fixed sampling's at the same samples (measured 0.55-0.63x over three
     seeds), and its rendered image under a sky no systematic offset (measured +0.004-0.013%, the
     error 0.22-0.26%). Sub-points are taken only where a pixel's footprint is sampled by more than
-    one point, and not for glossy scenes or fixed sampling (nor unless asked for: `sub_points=True`); the
+    one point, and not for glossy scenes or fixed sampling (nor with `sub_points=False`); the
     matrix-free operator's products are the dense build's."""
     ref = build(*small_setup, samples=16, pixel_samples=16, seed=5, adaptive=False)
     adaptive, fixed = build(*small_setup, pixel_samples=4, sub_points=True), build(*small_setup, pixel_samples=4, adaptive=False)
