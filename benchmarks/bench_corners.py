@@ -36,8 +36,10 @@ file with its camera turned by 1 degree, with and without the aim read ("corner 
 camera 1 deg[, aim read]"); and a fault followed by the walls' dimensions and then the aim read off
 the empty corner (`fit_walls`, what the command does: ", walls and aim read"), the whole command
 where the fault starts with "corner file" (with its walls measured 2 cm off: "corner file +
-background + walls 2"). It writes `mismatch.json`: the network's and the
-refined mean and median d per fault.
+background + walls 2"); and the hidden object 1 cm wider or narrower in radius than any the scenes draw
+and the refinement fits ("object 1 cm wider", "object 1 cm narrower": 5 and 1.25 cm, each frame rendered
+again with it, moved only where the wider one would touch a wall). It writes `mismatch.json`: the
+network's and the refined mean and median d per fault (with the fitted radii).
 
 Differential rendering (issue 6, thesis 3.2.1 reports ~15x): the exact one-bounce difference image
 by sampling the object and its shadow (`DifferentialRenderer.render(negative=True)`) against the
@@ -373,7 +375,10 @@ FAULTS = ("none", "walls 1", "walls 2", "camera 1 deg", "lamp 5 cm", "floor text
           "corner file + background + camera 1 deg, aim read", "none, walls and aim read",
           "walls 1, walls and aim read", "walls 2, walls and aim read", "corner file + background, walls and aim read",
           "corner file + background + camera 1 deg, walls and aim read", "corner file + background + walls 2",
-          "corner file + background + walls 2, walls and aim read")
+          "corner file + background + walls 2, walls and aim read", "object 1 cm wider", "object 1 cm narrower")
+# The "object" faults: the hidden cylinder's radius 1 cm past the range the scenes draw and the refinement fits
+# (`OBJECT_RADIUS`), the frame rendered again with it; the model is the scene's own (the "none" fault).
+OBJECT_FAULTS = {"object 1 cm wider": hc.OBJECT_RADIUS[1] + 0.01, "object 1 cm narrower": hc.OBJECT_RADIUS[0] - 0.01}
 
 
 def _base_fault(fault: str) -> str:
@@ -381,8 +386,20 @@ def _base_fault(fault: str) -> str:
     return fault.removesuffix(", walls and aim read").removesuffix(", aim read")
 
 
+def resized_object(scene, radius: float):
+    """`scene` with its hidden cylinder at `radius` (the "object" faults), moved the least that keeps it
+    as clear of the walls as the scenes draw it (`_hidden_position`'s margins)."""
+    p, (x, z) = scene.params, scene.hidden.position
+    x = float(np.clip(x, radius + 0.01, p["length_hidden"] - radius))
+    z = float(np.clip(z, radius + 0.005, p["width_hidden"] - radius - 0.005))
+    return dataclasses.replace(scene, hidden=dataclasses.replace(scene.hidden, radius=radius, position=(x, z)))
+
+
 def model_mismatch(count: int, seed: int, aim: int = 0, faults=FAULTS) -> dict:
-    """Network and refined d on `count` fresh L and T scenes (lamp fixed) for each of `faults`."""
+    """Network and refined d on `count` fresh L and T scenes (lamp fixed) for each of `faults`.
+
+    The "object" faults render each frame again, as the dataset does, with the hidden object resized
+    (`resized_object`); the network's d of those rows is on those frames."""
     table = Table()
     table.append(("class", "model of the corner", "network d (cm)", "refined d (cm)", "median", "worse by > 1 cm",
                   "accepted"))
@@ -395,17 +412,30 @@ def model_mismatch(count: int, seed: int, aim: int = 0, faults=FAULTS) -> dict:
         network_d = hc.localization_errors(loc.position, data.positions)["d"] * 100
         for fault in faults:
             rng = np.random.default_rng([seed, FAULTS.index(_base_fault(fault))])  # the same faults with reads
+            scenes = [hc.random_corner_scene(kind, seed * 1_000_003 + i, lamp=hc.FIXED_LAMP) for i in range(count)]
+            images, truth, fault_loc, fault_d, extra = data.images, data.positions, loc, network_d, {}
+            if fault in OBJECT_FAULTS:
+                scenes = [resized_object(s, OBJECT_FAULTS[fault]) for s in scenes]
+                images = np.stack([hc.DifferentialRenderer(s).render(samples=16, seed=seed * 1_000_003 + i)
+                                   for i, s in enumerate(scenes)]).astype(data.images.dtype)
+                truth = np.array([s.hidden.position for s in scenes], np.float32)
+                fault_loc = hc.localize(model, images)
+                fault_d = hc.localization_errors(fault_loc.position, truth)["d"] * 100
+                extra = dict(moved_cm=[100 * float(np.hypot(*np.subtract(s.hidden.position, t)))
+                                       for s, t in zip(scenes, data.positions)],
+                             object_visible=int(sum(hc.object_visible(s) for s in scenes)))
             refined = []
-            for i, image in enumerate(data.images):
-                scene = hc.random_corner_scene(kind, seed * 1_000_003 + i, lamp=hc.FIXED_LAMP)
-                r = hc.refine_corner(_faulty_renderer(scene, fault, rng), image, loc.position[i], loc.cov[i],
-                                     heatmap=loc.heatmap[i], aim=aim, seed=i)
-                refined.append((r.position, r.accepted))
-            d = hc.localization_errors(np.array([p for p, _ in refined]), data.positions)["d"] * 100
-            row = dict(kind=kind, fault=fault, network_mean_cm=float(network_d.mean()),
-                       network_median_cm=float(np.median(network_d)), refined_mean_cm=float(d.mean()),
-                       refined_median_cm=float(np.median(d)), worse_share=float(np.mean(d - network_d > 1.0)),
-                       accepted_share=float(np.mean([a for _, a in refined])))
+            for i, (scene, image) in enumerate(zip(scenes, images)):
+                r = hc.refine_corner(_faulty_renderer(scene, "none" if fault in OBJECT_FAULTS else fault, rng), image,
+                                     fault_loc.position[i], fault_loc.cov[i], heatmap=fault_loc.heatmap[i], aim=aim,
+                                     seed=i)
+                refined.append((r.position, r.accepted, r.radius))
+            d = hc.localization_errors(np.array([p for p, _, _ in refined]), truth)["d"] * 100
+            row = dict(kind=kind, fault=fault, network_mean_cm=float(fault_d.mean()),
+                       network_median_cm=float(np.median(fault_d)), refined_mean_cm=float(d.mean()),
+                       refined_median_cm=float(np.median(d)), worse_share=float(np.mean(d - fault_d > 1.0)),
+                       accepted_share=float(np.mean([a for _, a, _ in refined])),
+                       fitted_radius_cm=[100 * r for _, _, r in refined], **extra)
             out["rows"].append(row)
             table.append((kind, fault, f"{row['network_mean_cm']:.2f}", f"**{row['refined_mean_cm']:.2f}**",
                           f"{row['refined_median_cm']:.2f}", f"{100 * row['worse_share']:.0f}%",
