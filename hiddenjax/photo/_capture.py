@@ -173,9 +173,11 @@ class _Outline:
         if self.closed:  # a closed surface's outline is that of its faces towards the camera
             t = vertices[faces]
             normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-            faces = faces[np.einsum("fk,fk->f", normal, t.mean(axis=1) - self.origin) < 0]
+            centre = (t[:, 0] + t[:, 1] + t[:, 2]) / 3  # t.mean(axis=1) to the bit, a third of its time
+            faces = faces[np.einsum("fk,fk->f", normal, centre - self.origin) < 0]
+        fill = cv2.fillConvexPoly  # positional arguments: OpenCV's keyword parsing cost a third of the loop
         for triangle in xy[faces]:  # one by one: fillPoly would cancel overlapping triangles
-            cv2.fillConvexPoly(fine, triangle, 1, lineType=cv2.LINE_8, shift=4)
+            fill(fine, triangle, 1, cv2.LINE_8, 4)  # lineType, shift (4 fractional bits)
         out[r0:r1, c0:c1] = _block_sums(fine, k) / k**2
         return out, (r0, r1, c0, c1)
 
