@@ -14,7 +14,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ..scene import Camera, Scene
 from ._polish import polish_lights
@@ -531,6 +530,8 @@ def _split(params, fit_ambient):
 def _lm_impl(params, args, steps, _lr, fit_ambient):
     free, held = _split(params, fit_ambient)
     residual = lambda p, a: _residual((*p, *held), a)
+    import optimistix as optx  # here: its import (with lineax) is a tenth of every command's start
+
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8)
     sol = optx.least_squares(residual, solver, free, args=args, max_steps=steps, throw=False)
     params = (*sol.value, *held)
