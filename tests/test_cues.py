@@ -199,9 +199,10 @@ def test_a_shift_short_of_the_rounding_is_widened_before_qr(scene_T, monkeypatch
     refined = _linear._refined_inverse_factor
     shifts = []
 
-    def narrow_fails(A, grid, ls, lr, chunk, passes, columns=None, wide=False):
+    def narrow_fails(A, grid, ls, lr, chunk, passes, columns=None, wide=False, factor=None):
         shifts.append((wide, passes))
-        return refined(A, grid, ls, lr, chunk, passes, columns, wide) if wide else jnp.full((A.shape[1],) * 2, jnp.nan)
+        return refined(A, grid, ls, lr, chunk, passes, columns, wide, factor) if wide else \
+            jnp.full((A.shape[1],) * 2, jnp.nan)
 
     with jax.enable_x64():
         qr = hj.cues.LinearCues.build(scene_T, method="qr")
@@ -215,6 +216,39 @@ def test_a_shift_short_of_the_rounding_is_widened_before_qr(scene_T, monkeypatch
         finally:
             jax.clear_caches()
         assert [wide for wide, _ in shifts] == [False, True] and shifts[1][1] == shifts[0][1] + 1, shifts
+        np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-9)
+        np.testing.assert_allclose(cues.leverage(), qr.leverage(), rtol=1e-7, atol=1e-9)
+
+
+def test_a_starting_factor_that_breaks_down_goes_straight_to_the_wide_shift(scene_T, monkeypatch):
+    """Where the Cholesky factor shifted by the mean of diag(A^T A) is NaN from the start (a table's
+    transport, one dominant direction), the build refines the factor shifted by the trace at once, with
+    one pass more, instead of a pass over A that ends in NaN: one refinement, and the cues of the QR
+    factorization (float64) to 1e-9."""
+    from hiddenjax.cues import _linear
+    shifted, refined, calls = _linear._shifted_factor, _linear._refined_inverse_factor, []
+
+    def narrow_breaks_down(gram, grid, ls, lr, N, wide):
+        return shifted(gram, grid, ls, lr, N, wide) if wide else jnp.full(gram.shape, jnp.nan)
+
+    def counted(A, grid, ls, lr, chunk, passes, columns=None, wide=False, factor=None):
+        calls.append((wide, passes, factor is not None))
+        return refined(A, grid, ls, lr, chunk, passes, columns, wide, factor)
+
+    with jax.enable_x64():
+        qr = hj.cues.LinearCues.build(scene_T, method="qr")
+        passes = _linear._passes(scene_T.A.dtype, hj.solvers.DEFAULT_RIDGE, False)
+        try:
+            with monkeypatch.context() as patch:
+                patch.setattr(_linear, "_shifted_factor", narrow_breaks_down)
+                patch.setattr(_linear, "_refined_inverse_factor", counted)
+                jax.clear_caches()
+                with warnings.catch_warnings():
+                    warnings.simplefilter("error")
+                    cues = hj.cues.LinearCues.build(scene_T)
+        finally:
+            jax.clear_caches()
+        assert calls == [(True, passes + 1, True)], calls
         np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-9)
         np.testing.assert_allclose(cues.leverage(), qr.leverage(), rtol=1e-7, atol=1e-9)
 
