@@ -191,6 +191,25 @@ def test_a_failed_shifted_cholesky_falls_back_to_qr_with_a_warning(scene_T, monk
         np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-12)
 
 
+def _cues_with(T, monkeypatch, **patches):
+    """`(cues, qr)`: `T`'s default (Cholesky) cues built with `hiddenjax.cues._linear`'s functions
+    `patches` in place and no warning allowed (the factorization is compiled: traced anew, its caches
+    cleared before and after), and its cues of the QR method as they are."""
+    from hiddenjax.cues import _linear
+    qr = hj.cues.LinearCues.build(T, method="qr")
+    try:
+        with monkeypatch.context() as patch:
+            for name, value in patches.items():
+                patch.setattr(_linear, name, value)
+            jax.clear_caches()
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                cues = hj.cues.LinearCues.build(T)
+    finally:
+        jax.clear_caches()
+    return cues, qr
+
+
 def test_a_shift_short_of_the_rounding_is_widened_before_qr(scene_T, monkeypatch):
     """Where the shift from the mean of diag(A^T A) falls short (the factor NaN), the factorization is
     tried again shifted by the whole trace, a bound on A^T A's largest eigenvalue, with one pass more:
@@ -205,16 +224,7 @@ def test_a_shift_short_of_the_rounding_is_widened_before_qr(scene_T, monkeypatch
             jnp.full((A.shape[1],) * 2, jnp.nan)
 
     with jax.enable_x64():
-        qr = hj.cues.LinearCues.build(scene_T, method="qr")
-        try:
-            with monkeypatch.context() as patch:
-                patch.setattr(_linear, "_refined_inverse_factor", narrow_fails)
-                jax.clear_caches()
-                with warnings.catch_warnings():
-                    warnings.simplefilter("error")
-                    cues = hj.cues.LinearCues.build(scene_T)
-        finally:
-            jax.clear_caches()
+        cues, qr = _cues_with(scene_T, monkeypatch, _refined_inverse_factor=narrow_fails)
         assert [wide for wide, _ in shifts] == [False, True] and shifts[1][1] == shifts[0][1] + 1, shifts
         np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-9)
         np.testing.assert_allclose(cues.leverage(), qr.leverage(), rtol=1e-7, atol=1e-9)
@@ -236,18 +246,8 @@ def test_a_starting_factor_that_breaks_down_goes_straight_to_the_wide_shift(scen
         return refined(A, grid, ls, lr, chunk, passes, columns, wide, factor)
 
     with jax.enable_x64():
-        qr = hj.cues.LinearCues.build(scene_T, method="qr")
         passes = _linear._passes(scene_T.A.dtype, hj.solvers.DEFAULT_RIDGE, False)
-        try:
-            with monkeypatch.context() as patch:
-                patch.setattr(_linear, "_shifted_factor", narrow_breaks_down)
-                patch.setattr(_linear, "_refined_inverse_factor", counted)
-                jax.clear_caches()
-                with warnings.catch_warnings():
-                    warnings.simplefilter("error")
-                    cues = hj.cues.LinearCues.build(scene_T)
-        finally:
-            jax.clear_caches()
+        cues, qr = _cues_with(scene_T, monkeypatch, _shifted_factor=narrow_breaks_down, _refined_inverse_factor=counted)
         assert calls == [(True, passes + 1, True)], calls
         np.testing.assert_allclose(cues.uncertainty(), qr.uncertainty(), rtol=1e-9)
         np.testing.assert_allclose(cues.leverage(), qr.leverage(), rtol=1e-7, atol=1e-9)
