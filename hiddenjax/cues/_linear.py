@@ -72,8 +72,8 @@ class LinearCues(eqx.Module):
         instead, with one pass more (leverage and uncertainty there within 2e-6 of float64, the QR
         method's 2e-4); both starting factors come from one `A^T A` (`_starting_factors`), so such a
         table costs one pass more, not a failed refinement (0.74 s against 1.2 s on a 640x480
-        capture's 8337 x 2048 `A`). Only if both fail, QR, with a warning. Memory beside `A`: a few `N x N` matrices and one `chunk x N`
-        block of `A L^-T`.
+        capture's 8337 x 2048 `A`). Only if both fail, QR, with a warning. Memory beside `A`: a few
+        `N x N` matrices and one `chunk x N` block of `A L^-T`.
         `method="qr"`: `R` from a QR factorization of the stacked least-squares matrix
         `[A; sqrt(smooth) D; sqrt(ridge) I]` (`B = R^T R`), over `qr_chunk` rows of `A` at a time
         (`R <- qr([R; A_k])`): about as fast, 10x less accurate in float32 (teapot: 6e-6), and a few

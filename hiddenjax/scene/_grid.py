@@ -237,7 +237,7 @@ class EnvGrid(eqx.Module):
         edges = np.cos(self.theta_edges()).astype(u.dtype)
         c0 = edges[i]
         cos_theta = c0 + u[..., 0] * (edges[i + 1] - c0)
-        phi = (j.astype(u.dtype) + u[..., 1]) * u.dtype.type(2 * np.pi / self.width)  # in u's dtype (float32: 1/6 the time)
+        phi = (j.astype(u.dtype) + u[..., 1]) * u.dtype.type(2 * np.pi / self.width)  # u's dtype: float32 is 6x faster
         sin_theta = np.sqrt(np.maximum(0, 1 - cos_theta * cos_theta))
         out = np.empty(u.shape[:-1] + (3,), dtype=u.dtype)
         np.multiply(np.sin(phi), sin_theta, out=out[..., 0])
