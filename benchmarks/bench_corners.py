@@ -410,12 +410,12 @@ def model_mismatch(count: int, seed: int, aim: int = 0, faults=FAULTS) -> dict:
                                    progress=False)
         loc = hc.localize(model, data.images)
         network_d = hc.localization_errors(loc.position, data.positions)["d"] * 100
+        drawn = [hc.random_corner_scene(kind, seed * 1_000_003 + i, lamp=hc.FIXED_LAMP) for i in range(count)]
         for fault in faults:
             rng = np.random.default_rng([seed, FAULTS.index(_base_fault(fault))])  # the same faults with reads
-            scenes = [hc.random_corner_scene(kind, seed * 1_000_003 + i, lamp=hc.FIXED_LAMP) for i in range(count)]
-            images, truth, fault_loc, fault_d, extra = data.images, data.positions, loc, network_d, {}
+            scenes, images, truth, fault_loc, fault_d, extra = drawn, data.images, data.positions, loc, network_d, {}
             if fault in OBJECT_FAULTS:
-                scenes = [resized_object(s, OBJECT_FAULTS[fault]) for s in scenes]
+                scenes = [resized_object(s, OBJECT_FAULTS[fault]) for s in drawn]
                 images = np.stack([hc.DifferentialRenderer(s).render(samples=16, seed=seed * 1_000_003 + i)
                                    for i, s in enumerate(scenes)]).astype(data.images.dtype)
                 truth = np.array([s.hidden.position for s in scenes], np.float32)
