@@ -427,13 +427,12 @@ class DirectLighting:
         per_point = _rays_per_point(k, group)
         strata = _diagonal_order(k)[(np.arange(group)[:, None] * per_point + np.arange(per_point)) % (k * k)]
         w = _take(self._cell_points(k).reshape(-1, 3), (j * (k * k))[:, None] + strata[m % group])  # (K, per_point, 3)
+        facing = _dot(w, _take(n, m).astype(np.float32)[:, None, :]) > 0
         if origins is None:
-            facing = _dot(w, _take(n, m).astype(np.float32)[:, None, :]) > 0
             occluded, rays = self._trace(x, m, w, cones, facing)
         else:  # from the points' sub-points (module docstring, "Sub-points"), the pixel's in turn
             position, sub_cones, rng = origins  # each ray's sub-point uniform (a random shift per pair)
             at_sub = m[:, None] * SUB + (rng.integers(0, SUB, (len(m), 1)) + np.arange(per_point)[None, :]) % SUB
-            facing = _dot(w, _take(n, m).astype(np.float32)[:, None, :]) > 0
             occluded, rays = self._trace_from(position, at_sub, w, sub_cones, facing)
         key = (m // group) * N + j
         pixels = int(key.max()) // N + 1  # (pixel, env pixel) fields of the pixels up to the last with a pair
