@@ -1,6 +1,7 @@
 """Hidden objects around corners (thesis ch. 3): scenes, differential rendering, labels, CNN, refinement."""
 
 import dataclasses
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -412,6 +413,21 @@ def test_refine_corner_keeps_an_estimate_the_data_cannot_improve(search_case):
     truth = np.asarray(scene.hidden.position)
     out = hc.refine_corner(model, observed, truth, 0.03**2 * np.eye(2), seed=1)
     assert np.linalg.norm(out.position - truth) < 0.005, (out.accepted, out.improvement, out.noise)
+
+
+def test_refine_corner_returns_the_network_place_for_a_frame_without_signal(search_case):
+    """An all-zero frame (the object changes nothing in view) gives every candidate the loss 0 / 0:
+    the network's place comes back unsearched, with finite fields (a track's JSON stays valid)."""
+    scene, observed, model = search_case
+    mean = np.asarray(scene.hidden.position) + 0.02
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "invalid value" on the way
+        out = hc.refine_corner(model, np.zeros_like(observed), mean, 0.03**2 * np.eye(2), lamp_box=hc.LAMP_BOX)
+    np.testing.assert_array_equal(out.position, mean)
+    np.testing.assert_array_equal(out.searched, mean)
+    assert not out.accepted and out.renders == 0 and out.loss == 1.0
+    assert np.all(np.isfinite([out.improvement, out.noise, out.radius, out.height, *out.lamp]))
+    assert np.all((hc.LAMP_BOX[0] <= out.lamp) & (out.lamp <= hc.LAMP_BOX[1]))
 
 
 def test_paired_loss_takes_the_render_noise_out_of_the_scale_free_loss(search_case):

@@ -20,6 +20,10 @@ a stage all candidates share their random numbers (the loss surface is not re-no
    The estimate moves only if the mean loss decrease exceeds `t_{confidence, checks - 1}` standard
    errors of the paired differences: the Monte Carlo noise, measured, not guessed.
 
+A frame without signal (every block of it zero: the object changes nothing the camera sees, as in
+3 of 200 fresh T scenes) has nothing to fit: the network's place is returned as it is, unsearched
+(`accepted` False, `renders` 0, the loss 1).
+
 **The loss** is eq. 3.2 after the closed-form intensity scale, `1 - <r, x>^2 / (|r|^2 |x|^2)` on
 `block`-averaged images, with the render's own noise taken out of its denominator: from two
 independent renders `r1`, `r2` of the same candidate (half the samples each),
@@ -220,6 +224,12 @@ def refine_corner(renderer: DifferentialRenderer, observed, mean, cov, *, heatma
         lamp_low = lamp_high = lamp0 = np.zeros(0)
     loss = _Loss(renderer, observed, block, fit_lamp, aim)
     radius0 = float(np.clip(renderer.scene.hidden.radius, *OBJECT_RADIUS))
+    if loss.xx == 0:  # no signal: every candidate's loss would be 0 / 0
+        return CornerRefinement(
+            position=mean.copy(), network=mean, searched=mean.copy(), accepted=False, improvement=0.0, noise=0.0,
+            loss=1.0, radius=radius0, height=float(np.clip(renderer.scene.hidden.height, *OBJECT_HEIGHT)),
+            lamp=lamp0.copy() if fit_lamp else np.asarray(renderer.scene.lamp, np.float64), renders=0,
+            seconds=time.perf_counter() - t0)
     low = np.r_[-np.inf, -np.inf, OBJECT_RADIUS[0], OBJECT_HEIGHT[0], lamp_low]
     high = np.r_[np.inf, np.inf, OBJECT_RADIUS[1], OBJECT_HEIGHT[1], lamp_high]
     sigma_min = float(np.sqrt(np.clip(np.linalg.eigvalsh(cov).min(), 0.01**2, 0.08**2)))
