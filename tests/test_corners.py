@@ -448,6 +448,27 @@ def test_paired_loss_takes_the_render_noise_out_of_the_scale_free_loss(search_ca
     assert loss(np.r_[-1.0, 0.1, 0.03, 0.1], 4, 0) == 1.0  # outside the hidden corridor
 
 
+def test_count_at_most_is_the_binary_search_on_awkward_weights():
+    """The renderer's table lookup gives `np.searchsorted(cdf, u, side="right")` exactly: runs of
+    zero weights (equal cdf entries), one point holding nearly all the weight (thousands of entries
+    in one bin, searched), queries on and just past the entries, 0 and 1."""
+    from hiddenjax.corners._render import _count_at_most
+
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        w = rng.random(4096) ** rng.uniform(1, 30)
+        if trial % 3 == 0:
+            w[rng.random(4096) < 0.5] = 0.0
+        if trial % 4 == 0:
+            w[rng.integers(4096)] = 1e9
+        if trial % 5 == 0:
+            w[:] = 0.0
+            w[rng.integers(4096, size=3)] = 1.0
+        cdf = np.cumsum(w / w.sum())
+        u = np.r_[((rng.random((500, 1)) + np.arange(6)) / 6).ravel(), 0.0, 1.0, cdf[::37], np.nextafter(cdf[::37], 2)]
+        np.testing.assert_array_equal(_count_at_most(cdf, u), np.searchsorted(cdf, u, side="right"))
+
+
 def test_render_with_another_object_and_lamp_is_the_scene_rendered_with_them():
     scene = hc.random_corner_scene("T", 3, width=32, height=32)
     other = hc.HiddenObject((0.2, 0.1), radius=0.035, height=0.1, albedo=0.5)
