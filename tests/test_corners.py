@@ -391,20 +391,27 @@ def search_case():
 
 
 def test_refine_corner_finds_the_object_from_a_guess_5_cm_off(search_case):
-    """Five searches (seeds 0-4: each its own random numbers) from a guess 5 cm off. Measured, 12
-    samples/px in the local search: 2.6, 1.43, 2.03, 1.0, 1.43 cm (median 1.43); with 8 samples/px
-    1.0, 2.6, 4.16, 4.27, 1.58 (median 2.6), which the median and the worst case below would fail."""
+    """Five searches (seeds 0-4: each its own random numbers) from a guess 5 cm off. Measured, one
+    run of the local search at 12 samples/px (`streams=1`): 2.6, 1.43, 2.03, 1.0, 1.43 cm (median
+    1.43); with 8 samples/px 1.0, 2.6, 4.16, 4.27, 1.58 (median 2.6), which the median and the worst
+    case below would fail. The default's two runs averaged: 2.34, 2.08, 1.64, 1.75, 2.02 cm (median
+    2.02): on this scene the draws scatter about a place some 2 cm off, so the average is no closer
+    than one draw (over 200 T scenes it is: the experiments page), but it varies less."""
     scene, observed, model = search_case
     truth = np.asarray(scene.hidden.position)
-    errors = []
-    for seed in range(5):
-        out = hc.refine_corner(model, observed, truth + np.array([0.04, -0.03]), 0.03**2 * np.eye(2), seed=seed)
-        assert out.accepted and out.improvement > 3 * out.noise
-        assert abs(out.height - scene.hidden.height) < 0.03  # fitted from 14 cm (measured: 8-9 cm, true 8.8)
-        np.testing.assert_array_equal(out.network, truth + np.array([0.04, -0.03]))
-        assert out.renders > 0 and out.seconds > 0
-        errors.append(np.linalg.norm(out.position - truth))
-    assert np.median(errors) < 0.02 and max(errors) < 0.03
+    errors = {1: [], 2: []}
+    for streams in (1, 2):
+        for seed in range(5):
+            out = hc.refine_corner(model, observed, truth + np.array([0.04, -0.03]), 0.03**2 * np.eye(2),
+                                   streams=streams, seed=seed)
+            assert out.accepted and out.improvement > 3 * out.noise
+            assert abs(out.height - scene.hidden.height) < 0.03  # fitted from 14 cm (measured: 8-9 cm, true 8.8)
+            np.testing.assert_array_equal(out.network, truth + np.array([0.04, -0.03]))
+            assert out.renders > 0 and out.seconds > 0
+            errors[streams].append(np.linalg.norm(out.position - truth))
+    assert np.median(errors[1]) < 0.02 and max(errors[1]) < 0.03
+    assert np.median(errors[2]) < 0.025 and max(errors[2]) < 0.03
+    assert np.ptp(errors[2]) < np.ptp(errors[1])  # measured: 0.70 against 1.60 cm
 
 
 def test_refine_corner_keeps_an_estimate_the_data_cannot_improve(search_case):
@@ -490,6 +497,7 @@ def test_refine_corner_rejects_bad_input(search_case):
                             (dict(mean=np.array([np.nan, 0.1])), "finite"),
                             (dict(cov=np.eye(3)), "2x2"),
                             (dict(checks=1), "checks >= 2"),
+                            (dict(streams=3), "streams must be 1 or 2"),
                             (dict(lamp_box=((0, 0, 0), (1, -1, 1))), "low <= high")):
         args = dict(observed=observed, mean=p, cov=c) | kwargs
         with pytest.raises(ValueError, match=message):
