@@ -261,7 +261,7 @@ def refine_corner(renderer: DifferentialRenderer, observed, mean, cov, *, heatma
         picked = order[:starts]
         everything = list(range(len(low)))
 
-        stream_seeds = [search_seed] + [int(np.random.default_rng([seed, 1]).integers(0, 2**31))] * (streams - 1)
+        stream_seeds = [search_seed, int(np.random.default_rng([seed, 1]).integers(0, 2**31))][:streams]
 
         def search(args):
             theta, dims, s = args
