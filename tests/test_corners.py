@@ -476,6 +476,26 @@ def test_count_at_most_is_the_binary_search_on_awkward_weights():
         np.testing.assert_array_equal(_count_at_most(cdf, u), np.searchsorted(cdf, u, side="right"))
 
 
+def test_object_triangles_are_the_meshs_numbers_without_the_mesh():
+    """The renderer samples the object from `HiddenObject.triangles` (a cached upright cylinder, moved)
+    and trimesh's own area and normal formulas: the same numbers as the `Trimesh` that `render_full`
+    ray casts, to the bit, at any place and size (also the same size again, from the cache)."""
+    from hiddenjax.corners._render import object_samples
+
+    rng = np.random.default_rng(5)
+    sizes = [(float(rng.uniform(0.02, 0.04)), float(rng.uniform(0.08, 0.2))) for _ in range(4)]
+    for k in range(12):
+        radius, height = sizes[k % 4]
+        obj = hc.HiddenObject(tuple(rng.uniform(-0.3, 0.6, 2)), radius, height, 0.6)
+        mesh = obj.mesh()
+        np.testing.assert_array_equal(obj.triangles(), mesh.triangles)
+        q, nq, area = object_samples(obj.triangles(), 256, np.random.default_rng(k))
+        face = np.random.default_rng(k).choice(len(mesh.faces), size=256, p=mesh.area_faces / mesh.area_faces.sum())
+        np.testing.assert_array_equal(nq, mesh.face_normals[face])
+        assert area == float(mesh.area_faces.sum())
+        assert np.abs(np.sum((q - mesh.triangles[face, 0]) * nq, 1)).max() < 1e-12  # on their faces' planes
+
+
 def test_render_with_another_object_and_lamp_is_the_scene_rendered_with_them():
     scene = hc.random_corner_scene("T", 3, width=32, height=32)
     other = hc.HiddenObject((0.2, 0.1), radius=0.035, height=0.1, albedo=0.5)

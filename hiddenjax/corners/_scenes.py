@@ -13,6 +13,7 @@ what the differential renderer needs (the hidden object, the lamp, the procedura
 """
 
 import dataclasses
+import functools
 
 import numpy as np
 import trimesh
@@ -33,6 +34,17 @@ OBJECT_HEIGHT = (0.08, 0.2)
 LAMP_BOX = ((0.0, 0.4, 0.0), (0.4, 0.9, 0.3))
 
 
+@functools.lru_cache(maxsize=256)
+def _upright_cylinder(radius: float, height: float, sections: int) -> tuple[np.ndarray, np.ndarray]:
+    """`(vertices (V, 3), faces (F, 3))` of `HiddenObject.mesh` before its move: the cylinder's axis
+    turned from +z to +y, centred on the origin (read-only; cached per size)."""
+    m = trimesh.creation.cylinder(radius=radius, height=height, sections=sections)
+    m.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+    vertices, faces = np.array(m.vertices, np.float64), np.array(m.faces)
+    vertices.flags.writeable = faces.flags.writeable = False
+    return vertices, faces
+
+
 @dataclasses.dataclass(frozen=True)
 class HiddenObject:
     """A diffuse upright cylinder standing on the floor at `position = (x, z)` metres."""
@@ -47,6 +59,13 @@ class HiddenObject:
         m.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))  # axis +z -> +y
         m.apply_translation([self.position[0], self.height / 2, self.position[1]])
         return m
+
+    def triangles(self, sections: int = 24) -> np.ndarray:
+        """`mesh(sections).triangles (F, 3, 3)`, the same numbers, without building the mesh: the upright
+        cylinder of this size is made once (`_upright_cylinder`) and only moved (a render's search
+        moves one object to hundreds of places)."""
+        vertices, faces = _upright_cylinder(float(self.radius), float(self.height), int(sections))
+        return vertices[faces] + np.array([self.position[0], self.height / 2, self.position[1]])
 
     def moved(self, position) -> "HiddenObject":
         return dataclasses.replace(self, position=(float(position[0]), float(position[1])))
