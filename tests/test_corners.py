@@ -480,6 +480,8 @@ def test_object_triangles_are_the_meshs_numbers_without_the_mesh():
     """The renderer samples the object from `HiddenObject.triangles` (a cached upright cylinder, moved)
     and trimesh's own area and normal formulas: the same numbers as the `Trimesh` that `render_full`
     ray casts, to the bit, at any place and size (also the same size again, from the cache)."""
+    import trimesh
+
     from hiddenjax.corners._render import object_samples
 
     rng = np.random.default_rng(5)
@@ -488,6 +490,11 @@ def test_object_triangles_are_the_meshs_numbers_without_the_mesh():
         radius, height = sizes[k % 4]
         obj = hc.HiddenObject(tuple(rng.uniform(-0.3, 0.6, 2)), radius, height, 0.6)
         mesh = obj.mesh()
+        made = trimesh.creation.cylinder(radius=radius, height=height, sections=24)  # made and moved here
+        made.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+        made.apply_translation([obj.position[0], height / 2, obj.position[1]])
+        np.testing.assert_array_equal(mesh.vertices, made.vertices)
+        np.testing.assert_array_equal(mesh.faces, made.faces)
         np.testing.assert_array_equal(obj.triangles(), mesh.triangles)
         q, nq, area = object_samples(obj.triangles(), 256, np.random.default_rng(k))
         face = np.random.default_rng(k).choice(len(mesh.faces), size=256, p=mesh.area_faces / mesh.area_faces.sum())

@@ -19,6 +19,7 @@ import numpy as np
 import trimesh
 
 from ..scene import Camera, Scene, Surface
+from ..scene._fixtures import _y_up
 from ..transport._embree import RayCaster, pixel_centre_rays
 
 SCENE_CLASSES = ("L", "T", "table")
@@ -38,8 +39,7 @@ LAMP_BOX = ((0.0, 0.4, 0.0), (0.4, 0.9, 0.3))
 def _upright_cylinder(radius: float, height: float, sections: int) -> tuple[np.ndarray, np.ndarray]:
     """`(vertices (V, 3), faces (F, 3))` of `HiddenObject.mesh` before its move: the cylinder's axis
     turned from +z to +y, centred on the origin (read-only; cached per size)."""
-    m = trimesh.creation.cylinder(radius=radius, height=height, sections=sections)
-    m.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+    m = _y_up(trimesh.creation.cylinder(radius=radius, height=height, sections=sections))
     vertices, faces = np.array(m.vertices, np.float64), np.array(m.faces)
     vertices.flags.writeable = faces.flags.writeable = False
     return vertices, faces
@@ -55,17 +55,19 @@ class HiddenObject:
     albedo: float
 
     def mesh(self, sections: int = 24) -> trimesh.Trimesh:
-        m = trimesh.creation.cylinder(radius=self.radius, height=self.height, sections=sections)
-        m.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))  # axis +z -> +y
-        m.apply_translation([self.position[0], self.height / 2, self.position[1]])
-        return m
+        """The cylinder as a mesh: `_upright_cylinder` of this size moved to its place."""
+        vertices, faces = _upright_cylinder(float(self.radius), float(self.height), int(sections))
+        return trimesh.Trimesh(vertices + self._lift(), faces.copy(), process=False)
 
     def triangles(self, sections: int = 24) -> np.ndarray:
-        """`mesh(sections).triangles (F, 3, 3)`, the same numbers, without building the mesh: the upright
-        cylinder of this size is made once (`_upright_cylinder`) and only moved (a render's search
-        moves one object to hundreds of places)."""
+        """`mesh(sections).triangles (F, 3, 3)`, the same numbers, without building the mesh (a render's
+        search moves one object to hundreds of places)."""
         vertices, faces = _upright_cylinder(float(self.radius), float(self.height), int(sections))
-        return vertices[faces] + np.array([self.position[0], self.height / 2, self.position[1]])
+        return vertices[faces] + self._lift()
+
+    def _lift(self) -> np.ndarray:
+        """The move from the origin-centred cylinder to this one: `(x, height / 2, z)`."""
+        return np.array([self.position[0], self.height / 2, self.position[1]])
 
     def moved(self, position) -> "HiddenObject":
         return dataclasses.replace(self, position=(float(position[0]), float(position[1])))
