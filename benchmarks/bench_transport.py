@@ -241,7 +241,7 @@ def main(argv=None):
     results["reference"] = dict(samples=16 if q else 32, pixel_samples=16, pixels=int(ref.A.shape[0]), seconds=t_ref)
     results["scaling"], results["accuracy"] = [], []
     curves = [(False, False, 1, (2, 4, 8, 16, 32)), (False, False, 4, (2, 4, 8, 16, 32)), (False, False, 9, (2, 4, 8, 16)),
-              (False, False, 16, (2, 4)), (True, False, 1, (4, 8, 16, 32)), (True, False, 4, (4, 8, 16, 32)),
+              (False, False, 16, (2, 4, 8)), (True, False, 1, (4, 8, 16, 32)), (True, False, 4, (4, 8, 16, 32)),
               (True, False, 9, (4, 8, 16)), (True, False, 16, (4,)), (True, True, 4, (4, 8, 16, 32)), (True, True, 9, (4, 8))]
     for adaptive, sub, px, sample_counts in curves:
         for S in sample_counts:
