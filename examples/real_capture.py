@@ -120,7 +120,7 @@ def main(argv=None):
     small_h = int(round(width * H / W))
     true_cam = hj.Camera.look_at((0.06, 0.33, 0.22), (0.0, 0.02, -0.08), (0, 1, 0), fov=FOV, width=width, height=small_h)
     scene = hj.photo.capture_scene(base, TRUE_PLACE, albedo=ALBEDO)
-    mask = hj.photo.table_mask(BOARD, true_cam)
+    mask = hj.photo.table_mask(BOARD, true_cam, objects=hj.photo.place(base, TRUE_PLACE))
     T = hj.transport_matrix(scene, true_cam, hj.EnvGrid(*grid), mask=mask, progress=False)
     small = cv2.resize(noise(pinhole), (width, small_h), interpolation=cv2.INTER_AREA)
     env_true_scene = np.asarray(hj.solve_illumination(T, small).env)

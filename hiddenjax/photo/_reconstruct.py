@@ -189,7 +189,7 @@ def reconstruct(
     camera = pose.camera(width, height)
     small = _resize(photo, width, height)
     clipped = _resize_any(saturated, width, height)
-    mask = table_mask(board, camera, saturated=clipped)
+    mask = table_mask(board, camera, saturated=clipped, objects=place(base, placement))
     if used_plate is not None:
         mask &= ~_resize_any(table & ~used_plate.valid, width, height)
     on_object = None
@@ -333,7 +333,8 @@ def choose_roughness(base, placement: Placement, pose: BoardPose, photo, saturat
     height = max(8, int(round(AUTO_WIDTH * H0 / W0)))
     camera = pose.camera(AUTO_WIDTH, height)
     small = _resize(photo, AUTO_WIDTH, height)
-    mask = table_mask(board, camera, saturated=_resize_any(saturated, AUTO_WIDTH, height))
+    mask = table_mask(board, camera, saturated=_resize_any(saturated, AUTO_WIDTH, height),
+                      objects=place(base, placement))
     coarse = EnvGrid(max(4, grid.height // 2), max(8, grid.width // 2))
     residuals = {}
     for roughness in (None, *candidates):
