@@ -102,6 +102,8 @@ def test_table_rows_leave_out_every_pixel_the_object_covers_in_part(capture):
     rows = photo.table_mask(BOARD, cam, objects=placed)
     assert np.array_equal(rows, plain & (cover == 0))
     assert np.array_equal(photo.table_mask(BOARD, cam, objects=[placed, placed]), rows)
+    with pytest.raises(ValueError, match="objects must be a placed trimesh"):
+        photo.table_mask(BOARD, cam, objects=[placed, "teapot"])
     scene = photo.capture_scene(base, TRUE)
     kept = hj.transport_matrix(scene, cam, hj.EnvGrid(4, 8), samples=1, pixel_samples=1, mask=plain, progress=False)
     partly = np.asarray(kept.mask) & (cover > 0)

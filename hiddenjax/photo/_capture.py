@@ -341,6 +341,10 @@ def table_mask(board: Board, camera: Camera, margin: float = 0.01, saturated=Non
         if sat.shape != (H, W):
             raise ValueError(f"saturated mask is {sat.shape}, the camera {H}x{W}")
         mask &= ~(cv2.dilate(sat.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
-    for mesh in [] if objects is None else [objects] if isinstance(objects, trimesh.Trimesh) else objects:
+    meshes = [] if objects is None else [objects] if isinstance(objects, trimesh.Trimesh) else list(objects)
+    for mesh in meshes:
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise ValueError(f"objects must be a placed trimesh.Trimesh or a list of them (photo.place), got "
+                             f"{type(mesh).__name__}")
         mask &= silhouette(mesh, camera) == 0
     return mask
