@@ -165,6 +165,7 @@ def reconstruct(
     if refine:
         refinement = refine_placement(base, refine_camera, placement, target, care, radiance=refine_photo)
         placement = refinement.placement
+    placed = place(base, placement)  # the object where the solve takes it to stand
 
     unplated = photo
     used_plate = None
@@ -172,7 +173,7 @@ def reconstruct(
         full_camera = pose.camera(W0, H0)
         table = table_mask(board, full_camera, margin=0.0)
         used_plate = clean_plate(board, plate, intrinsics, pose, table, plate_saturated)
-        outline = silhouette(place(base, placement), full_camera) > 0.5
+        outline = silhouette(placed, full_camera) > 0.5
         radius = max(3, int(0.25 * np.sqrt(max(outline.sum(), 1))))
         grow = lambda m, r: cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
                                                                                      (2 * r + 1, 2 * r + 1))) > 0
@@ -189,12 +190,12 @@ def reconstruct(
     camera = pose.camera(width, height)
     small = _resize(photo, width, height)
     clipped = _resize_any(saturated, width, height)
-    mask = table_mask(board, camera, saturated=clipped, objects=place(base, placement))
+    mask = table_mask(board, camera, saturated=clipped, objects=placed)
     if used_plate is not None:
         mask &= ~_resize_any(table & ~used_plate.valid, width, height)
     on_object = None
     if observe != "table":
-        on_object = (silhouette(place(base, placement), camera) > 0.999) & ~clipped  # pixels wholly on the object
+        on_object = (silhouette(placed, camera) > 0.999) & ~clipped  # pixels wholly on the object
         if not np.any(on_object):
             raise ValueError("no pixel of the solve lies wholly on the object: it is too small in the photo for "
                              "observe='object'/'both'; raise the solve's width or photograph it larger")
